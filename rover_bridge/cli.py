@@ -1,0 +1,51 @@
+"""`rover-bridge` command line: one subcommand per module in rover_bridge.commands.
+
+Each command module exposes `NAME`, `HELP`, `add_arguments(parser)` and `main(args) -> int`.
+Exit codes: 0 ok, 1 runtime failure, 2 bad configuration or usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from types import ModuleType
+
+from rover_bridge import __version__
+from rover_bridge.errors import ConfigError
+
+# Imported lazily so that `rover-bridge check-params` does not pay for pymavlink's import.
+COMMAND_MODULES = ("check_params",)
+
+
+def _load(module_name: str) -> ModuleType:
+    return importlib.import_module(f"rover_bridge.commands.{module_name}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rover-bridge", description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--version", action="version", version=f"rover-bridge {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for module_name in COMMAND_MODULES:
+        mod = _load(module_name)
+        p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
+        mod.add_arguments(p)
+        p.set_defaults(_main=mod.main)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        code: int = args._main(args)
+    except ConfigError as exc:
+        print("rover-bridge: configuration errors:", file=sys.stderr)
+        for problem in exc.problems:
+            print(f"  - {problem}", file=sys.stderr)
+        return 2
+    return code

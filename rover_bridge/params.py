@@ -1,0 +1,424 @@
+"""Robot profiles: TOML in, one frozen, validated `Profile` out (pure; the file read is the caller's).
+
+Every parameter is declared exactly once, as a dataclass field whose metadata carries its
+unit, valid range and one sentence of help (ros2_controllers' generated parameter
+declarations are the model). Everything else is derived from those declarations: the
+loader's checks, `check-params` output and the README's parameter table.
+
+Loading a bad profile reports every problem at once, each with its key path and what was
+expected, and raises `ConfigError`; nothing starts on a bad profile.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import tomllib
+import types
+import typing
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rover_bridge.errors import ConfigError
+
+
+@dataclass(frozen=True, slots=True)
+class Spec:
+    """What one parameter means and which values it accepts."""
+
+    unit: str
+    help: str
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False  # lo itself is not allowed (e.g. a radius must be > 0)
+    choices: tuple[str, ...] | None = None
+
+
+def _p(default: Any, help: str, *, unit: str = "", lo: float | None = None, hi: float | None = None,
+       lo_open: bool = False, choices: tuple[str, ...] | None = None) -> Any:
+    spec = Spec(unit=unit, help=help, lo=lo, hi=hi, lo_open=lo_open, choices=choices)
+    if isinstance(default, (list, tuple)):
+        value = tuple(default)
+        return field(default_factory=lambda: value, metadata={"spec": spec})
+    return field(default=default, metadata={"spec": spec})
+
+
+@dataclass(frozen=True, slots=True)
+class RobotParams:
+    wheel_radius_m: float = _p(0.05, "Nominal wheel radius, used for both wheels unless a per-wheel radius is given.",
+                               unit="m", lo=0.0, lo_open=True, hi=2.0)
+    track_width_m: float = _p(0.30, "Wheel separation: centre of the left contact patch to centre of the right.",
+                              unit="m", lo=0.0, lo_open=True, hi=10.0)
+    left_wheel_radius_m: float | None = _p(None, "Left wheel radius when it differs from wheel_radius_m (calibration).",
+                                           unit="m", lo=0.0, lo_open=True, hi=2.0)
+    right_wheel_radius_m: float | None = _p(None, "Right wheel radius when it differs from wheel_radius_m.",
+                                            unit="m", lo=0.0, lo_open=True, hi=2.0)
+    max_wheel_rpm: float = _p(200.0, "Wheel speed at full PWM; wheel commands are desaturated to it, keeping curvature.",
+                              unit="rpm", lo=0.0, lo_open=True, hi=20000.0)
+
+    @property
+    def left_radius_m(self) -> float:
+        return self.wheel_radius_m if self.left_wheel_radius_m is None else self.left_wheel_radius_m
+
+    @property
+    def right_radius_m(self) -> float:
+        return self.wheel_radius_m if self.right_wheel_radius_m is None else self.right_wheel_radius_m
+
+    @property
+    def max_wheel_rad_s(self) -> float:
+        return self.max_wheel_rpm * 2.0 * math.pi / 60.0
+
+
+@dataclass(frozen=True, slots=True)
+class LimitsParams:
+    max_linear_m_s: float = _p(0.8, "Largest forward or reverse body speed the bridge will command.",
+                               unit="m/s", lo=0.0, lo_open=True, hi=50.0)
+    max_angular_rad_s: float = _p(3.0, "Largest yaw rate the bridge will command, either direction.",
+                                  unit="rad/s", lo=0.0, lo_open=True, hi=50.0)
+    max_linear_accel_m_s2: float = _p(1.0, "Largest rate at which |v| may grow.",
+                                      unit="m/s^2", lo=0.0, lo_open=True, hi=100.0)
+    max_linear_decel_m_s2: float = _p(2.0, "Largest rate at which |v| may shrink (braking, timeouts).",
+                                      unit="m/s^2", lo=0.0, lo_open=True, hi=100.0)
+    max_angular_accel_rad_s2: float = _p(6.0, "Largest rate of change of the yaw rate.",
+                                         unit="rad/s^2", lo=0.0, lo_open=True, hi=500.0)
+    max_linear_jerk_m_s3: float | None = _p(None, "Optional jerk limit on v; unset means acceleration may step.",
+                                            unit="m/s^3", lo=0.0, lo_open=True, hi=10000.0)
+    max_angular_jerk_rad_s3: float | None = _p(None, "Optional jerk limit on omega; unset means it may step.",
+                                               unit="rad/s^3", lo=0.0, lo_open=True, hi=10000.0)
+
+
+@dataclass(frozen=True, slots=True)
+class CommandParams:
+    setpoint_timeout_s: float = _p(0.5, "With no valid request for this long, brake to a stop through the limiter.",
+                                   unit="s", lo=0.05, hi=10.0)
+    rate_hz: float = _p(20.0, "How often wheel outputs are refreshed (well inside the autopilot's override timeout).",
+                        unit="Hz", lo=2.0, hi=200.0)
+    manual_linear_scale_m_s: float = _p(0.5, "MANUAL_CONTROL x = 1000 maps to this forward speed.",
+                                        unit="m/s", lo=0.0, lo_open=True, hi=50.0)
+    manual_angular_scale_rad_s: float = _p(1.5, "MANUAL_CONTROL r = 1000 maps to this yaw rate (a right turn).",
+                                           unit="rad/s", lo=0.0, lo_open=True, hi=50.0)
+    heading_kp_1_s: float = _p(2.0, "Earth-frame requests: commanded yaw rate per radian of heading error.",
+                               unit="1/s", lo=0.0, lo_open=True, hi=50.0)
+    accept_target_components: tuple[int, ...] = _p(
+        (0, 1, 191), "Velocity requests addressed to one of these component ids (of the vehicle) are consumed.",
+        lo=0, hi=255)
+
+
+@dataclass(frozen=True, slots=True)
+class OutputParams:
+    mode: str = _p("rc_override", "How wheels are driven: RC_CHANNELS_OVERRIDE (times out safely) or DO_SET_SERVO "
+                   "(held by ArduPilot with no timeout).", choices=("rc_override", "servo"))
+    left_channel: int = _p(1, "RC input channel (rc_override) or servo output (servo) that drives the left wheel.",
+                           lo=1, hi=16)
+    right_channel: int = _p(3, "RC input channel (rc_override) or servo output (servo) for the right wheel.",
+                            lo=1, hi=16)
+    pwm_min: int = _p(1000, "PWM for full reverse.", unit="us", lo=500, hi=2500)
+    pwm_trim: int = _p(1500, "PWM for a stopped wheel (neutral).", unit="us", lo=500, hi=2500)
+    pwm_max: int = _p(2000, "PWM for full forward.", unit="us", lo=500, hi=2500)
+    left_reversed: bool = _p(False, "Left motor is mounted so that pwm_max drives it backwards.")
+    right_reversed: bool = _p(False, "Right motor is mounted so that pwm_max drives it backwards.")
+    override_source_system: int = _p(
+        255, "System id the overrides are sent from: ArduPilot obeys RC_CHANNELS_OVERRIDE only from MAV_GCS_SYSID "
+        "(default 255) and silently ignores every other sender.", lo=1, hi=255)
+
+
+@dataclass(frozen=True, slots=True)
+class EncoderParams:
+    left_index: int = _p(0, "Index of the left wheel in WHEEL_DISTANCE.distance (depends on the WENC parameters).",
+                         lo=0, hi=15)
+    right_index: int = _p(1, "Index of the right wheel in WHEEL_DISTANCE.distance.", lo=0, hi=15)
+    left_reversed: bool = _p(False, "Left encoder counts down when the wheel drives forward.")
+    right_reversed: bool = _p(False, "Right encoder counts down when the wheel drives forward.")
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyParams:
+    heartbeat_timeout_s: float = _p(3.0, "Autopilot heartbeat silent this long: stop commanding; resume only on a "
+                                    "fresh request.", unit="s", lo=0.5, hi=60.0)
+    require_armed: bool = _p(True, "Drive only while the autopilot reports armed; otherwise hold neutral.")
+
+
+@dataclass(frozen=True, slots=True)
+class MavlinkParams:
+    vehicle_system_id: int = _p(0, "The vehicle's system id; 0 learns it from the autopilot's heartbeat.",
+                                lo=0, hi=255)
+    component_id: int = _p(191, "The bridge's own component id (MAV_COMP_ID_ONBOARD_COMPUTER).", lo=1, hi=255)
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorParams:
+    gyro_source: str = _p("auto", "Where the yaw rate comes from; auto takes the first of ATTITUDE, SCALED_IMU, "
+                          "RAW_IMU that arrives.", choices=("auto", "attitude", "raw_imu", "scaled_imu"))
+    calibrate: bool = _p(False, "Estimate effective track width and left/right radius ratio online.")
+    stream_rate_hz: float = _p(20.0, "Rate requested from the autopilot for WHEEL_DISTANCE and the gyro.",
+                               unit="Hz", lo=1.0, hi=200.0)
+
+
+@dataclass(frozen=True, slots=True)
+class OdometryParams:
+    rate_hz: float = _p(30.0, "How often ODOMETRY is published.", unit="Hz", lo=0.5, hi=200.0)
+    targets: str = _p("gcs", "Where ODOMETRY goes: the ground stations, the autopilot (external navigation), both, "
+                      "or nowhere.", choices=("gcs", "autopilot", "both", "none"))
+
+
+@dataclass(frozen=True, slots=True)
+class SecurityParams:
+    require_signed_commands: bool = _p(False, "Accept velocity requests and commands only when MAVLink 2 signed "
+                                       "with the key in key_file.")
+    key_file: str = _p("", "File holding the 32-byte signing secret (hex or raw); must not be group/world "
+                       "readable.")
+    allowed_sources: tuple[str, ...] = _p(
+        (), "If not empty, only these 'sysid:compid' sources (compid * for any) may send requests.")
+
+
+@dataclass(frozen=True, slots=True)
+class Profile:
+    """A whole robot profile. Construct through `load_profile` / `profile_from_dict`."""
+
+    robot: RobotParams = field(default_factory=RobotParams)
+    limits: LimitsParams = field(default_factory=LimitsParams)
+    command: CommandParams = field(default_factory=CommandParams)
+    output: OutputParams = field(default_factory=OutputParams)
+    encoders: EncoderParams = field(default_factory=EncoderParams)
+    safety: SafetyParams = field(default_factory=SafetyParams)
+    mavlink: MavlinkParams = field(default_factory=MavlinkParams)
+    estimator: EstimatorParams = field(default_factory=EstimatorParams)
+    odometry: OdometryParams = field(default_factory=OdometryParams)
+    security: SecurityParams = field(default_factory=SecurityParams)
+
+
+@dataclass(frozen=True, slots=True)
+class ParamInfo:
+    """One declared parameter, as the README table and check-params show it."""
+
+    section: str
+    name: str
+    type_name: str
+    optional: bool
+    default: Any
+    spec: Spec
+
+    @property
+    def path(self) -> str:
+        return f"{self.section}.{self.name}"
+
+    @property
+    def range_text(self) -> str:
+        if self.spec.choices:
+            return " | ".join(f'"{c}"' for c in self.spec.choices)
+        if self.spec.lo is None and self.spec.hi is None:
+            return ""
+        lo_bracket = "(" if self.spec.lo_open else "["
+        lo = "-inf" if self.spec.lo is None else _num(self.spec.lo)
+        hi = "inf" if self.spec.hi is None else _num(self.spec.hi)
+        return f"{lo_bracket}{lo}, {hi}]"
+
+
+def _num(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else repr(x)
+
+
+def _base_type(annotation: Any) -> tuple[str, bool]:
+    """('float' | 'int' | 'bool' | 'str' | 'list[int]' | 'list[str]', optional?) of a field annotation."""
+    optional = False
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        optional = True
+        annotation = args[0]
+        origin = typing.get_origin(annotation)
+    if origin is tuple:
+        inner = typing.get_args(annotation)[0]
+        return f"list[{inner.__name__}]", optional
+    return annotation.__name__, optional
+
+
+def iter_params() -> Iterator[ParamInfo]:
+    """Every declared parameter, in declaration order."""
+    for sec_field in dataclasses.fields(Profile):
+        cls = _section_class(sec_field.name)
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            type_name, optional = _base_type(hints[f.name])
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+            yield ParamInfo(sec_field.name, f.name, type_name, optional, default, f.metadata["spec"])
+
+
+def _section_class(section: str) -> type[Any]:
+    return type(getattr(Profile(), section))
+
+
+def _check_value(info: ParamInfo, value: Any) -> tuple[Any, list[str]]:
+    """Convert a TOML value to the declared type, or say what was expected."""
+    where = info.path
+    if value is None:
+        return None, []
+    t = info.type_name
+    if t.startswith("list["):
+        if not isinstance(value, list):
+            return None, [f"{where}: expected a list of {t[5:-1]}, got {type(value).__name__} {value!r}"]
+        out = []
+        problems = []
+        for i, item in enumerate(value):
+            conv, errs = _check_scalar(f"{where}[{i}]", t[5:-1], info.spec, item)
+            problems += errs
+            out.append(conv)
+        return tuple(out), problems
+    return _check_scalar(where, t, info.spec, value)
+
+
+def _check_scalar(where: str, t: str, spec: Spec, value: Any) -> tuple[Any, list[str]]:
+    # bool is a subclass of int in Python; a profile that says `pwm_min = true` is a mistake.
+    if t == "bool":
+        if not isinstance(value, bool):
+            return None, [f"{where}: expected true or false, got {type(value).__name__} {value!r}"]
+        return value, []
+    if t == "str":
+        if not isinstance(value, str):
+            return None, [f"{where}: expected a string, got {type(value).__name__} {value!r}"]
+        if spec.choices and value not in spec.choices:
+            hint = difflib.get_close_matches(value, spec.choices, n=1)
+            extra = f" (did you mean {hint[0]!r}?)" if hint else ""
+            return None, [f"{where}: expected one of {', '.join(spec.choices)}, got {value!r}{extra}"]
+        return value, []
+    if t == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            return None, [f"{where}: expected an integer, got {type(value).__name__} {value!r}"]
+        num: float = value
+    elif t == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return None, [f"{where}: expected a number, got {type(value).__name__} {value!r}"]
+        if not math.isfinite(value):
+            return None, [f"{where}: expected a finite number, got {value!r}"]
+        num = float(value)
+        value = num
+    else:  # pragma: no cover - a declaration error, caught by the tests of every profile
+        raise TypeError(f"unsupported parameter type {t} at {where}")
+    lo_ok = spec.lo is None or (num > spec.lo if spec.lo_open else num >= spec.lo)
+    hi_ok = spec.hi is None or num <= spec.hi
+    if not (lo_ok and hi_ok):
+        lo_b = "(" if spec.lo_open else "["
+        lo = "-inf" if spec.lo is None else _num(spec.lo)
+        hi = "inf" if spec.hi is None else _num(spec.hi)
+        return None, [f"{where}: {value!r} is out of range, expected a value in {lo_b}{lo}, {hi}]"]
+    return value, []
+
+
+def _cross_checks(p: Profile) -> list[str]:
+    problems = []
+    o = p.output
+    if not o.pwm_min < o.pwm_trim < o.pwm_max:
+        problems.append(f"output: expected pwm_min < pwm_trim < pwm_max, got {o.pwm_min} / {o.pwm_trim} / "
+                        f"{o.pwm_max}")
+    if o.left_channel == o.right_channel:
+        problems.append(f"output: left_channel and right_channel are both {o.left_channel}; each wheel needs its own")
+    e = p.encoders
+    if e.left_index == e.right_index:
+        problems.append(f"encoders: left_index and right_index are both {e.left_index}")
+    if 1000.0 / p.command.rate_hz >= 1000.0 * p.safety.heartbeat_timeout_s:
+        problems.append("command.rate_hz: outputs must refresh faster than safety.heartbeat_timeout_s")
+    for i, src in enumerate(p.security.allowed_sources):
+        parts = src.split(":")
+        ok = len(parts) == 2 and parts[0].isdigit() and 0 < int(parts[0]) <= 255 and (
+            parts[1] == "*" or (parts[1].isdigit() and int(parts[1]) <= 255))
+        if not ok:
+            problems.append(f"security.allowed_sources[{i}]: expected 'sysid:compid' or 'sysid:*', got {src!r}")
+    if p.security.require_signed_commands and not p.security.key_file:
+        problems.append("security: require_signed_commands = true needs key_file")
+    return problems
+
+
+def profile_from_dict(data: Mapping[str, Any], source: str = "<profile>") -> Profile:
+    """Validate a parsed TOML document; raise ConfigError listing every problem (prefixed by `source`)."""
+    problems: list[str] = []
+    by_section: dict[str, dict[str, ParamInfo]] = {}
+    for info in iter_params():
+        by_section.setdefault(info.section, {})[info.name] = info
+    sections: dict[str, Any] = {}
+    for sec_name, table in data.items():
+        if sec_name not in by_section:
+            hint = difflib.get_close_matches(sec_name, list(by_section), n=1)
+            extra = f" (did you mean [{hint[0]}]?)" if hint else ""
+            problems.append(f"[{sec_name}]: unknown section{extra}; known: {', '.join(by_section)}")
+            continue
+        if not isinstance(table, dict):
+            problems.append(f"{sec_name}: expected a table [{sec_name}], got {type(table).__name__}")
+            continue
+        values: dict[str, Any] = {}
+        for key, value in table.items():
+            info = by_section[sec_name].get(key)
+            if info is None:
+                hint = difflib.get_close_matches(key, list(by_section[sec_name]), n=1)
+                extra = f" (did you mean {hint[0]!r}?)" if hint else ""
+                problems.append(f"{sec_name}.{key}: unknown key{extra}")
+                continue
+            conv, errs = _check_value(info, value)
+            problems += errs
+            if not errs:
+                values[key] = conv
+        sections[sec_name] = values
+    # Cross-field checks run on the values that were valid, so one run reports everything.
+    profile = Profile()
+    built = {name: dataclasses.replace(getattr(profile, name), **vals) for name, vals in sections.items()}
+    profile = dataclasses.replace(profile, **built)
+    problems += _cross_checks(profile)
+    if problems:
+        raise ConfigError([f"{source}: {p}" for p in problems])
+    return profile
+
+
+def load_profile(path: str | Path) -> Profile:
+    """Read and validate a TOML profile; ConfigError lists every problem with its key path."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError([f"{path}: cannot read profile: {exc.strerror or exc}"]) from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError([f"{path}: not valid TOML: {exc}"]) from exc
+    return profile_from_dict(data, source=str(path))
+
+
+def profile_to_toml(profile: Profile) -> str:
+    """The fully resolved profile as TOML, every key present (unset optional keys as comments)."""
+    lines: list[str] = []
+    current = ""
+    for info in iter_params():
+        if info.section != current:
+            if lines:
+                lines.append("")
+            lines.append(f"[{info.section}]")
+            current = info.section
+        value = getattr(getattr(profile, info.section), info.name)
+        unit = f" [{info.spec.unit}]" if info.spec.unit else ""
+        if value is None:
+            lines.append(f"# {info.name} = (unset){unit}")
+        else:
+            lines.append(f"{info.name} = {_toml_value(value)}{'  # ' + info.spec.unit if info.spec.unit else ''}")
+    return "\n".join(lines) + "\n"
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def markdown_table() -> str:
+    """The README's parameter reference, generated from the declarations."""
+    rows = ["| key | type | unit | default | valid | meaning |", "|---|---|---|---|---|---|"]
+    for info in iter_params():
+        default = "unset" if info.default is None else _toml_value(info.default)
+        type_name = info.type_name + (" (optional)" if info.optional else "")
+        rows.append(f"| `{info.path}` | {type_name} | {info.spec.unit} | `{default}` | {info.range_text} | "
+                    f"{info.spec.help} |")
+    return "\n".join(rows) + "\n"

@@ -1,0 +1,48 @@
+"""Value types that cross the boundary between the pure core and the I/O shell.
+
+The core returns `Outgoing` values; the shell packs each with the given source ids and
+writes it to the links named by `dest`. Frames the core does not consume are forwarded by
+the shell byte for byte (source ids and signatures intact), so they never appear here.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+from rover_bridge.mav import MAVLinkMessage
+
+
+class Link(enum.Enum):
+    """Which side of the bridge a message came from or goes to."""
+
+    AUTOPILOT = "autopilot"
+    GCS = "gcs"
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing:
+    """One message the core wants sent.
+
+    `src_system` / `src_component` are the MAVLink source ids to pack it with: the bridge's
+    own heartbeat uses the vehicle's system id, but RC_CHANNELS_OVERRIDE must come from the
+    GCS system id (ArduPilot's MAV_GCS_SYSID) or ArduPilot silently ignores it.
+    """
+
+    dest: Link
+    msg: MAVLinkMessage
+    src_system: int
+    src_component: int
+
+
+@dataclass(frozen=True, slots=True)
+class Incoming:
+    """One decoded message as the core sees it: where it came from and whether it was signed.
+
+    `signed_ok` is True only when the frame carried a MAVLink 2 signature that the shell
+    verified against the link's key (see [security]); False for unsigned frames.
+    """
+
+    link: Link
+    msg: MAVLinkMessage
+    signed_ok: bool = False
