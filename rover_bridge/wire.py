@@ -46,3 +46,18 @@ class Incoming:
     link: Link
     msg: MAVLinkMessage
     signed_ok: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Reaction:
+    """What a core did with one incoming message.
+
+    `consumed` frames are not forwarded to the other side (e.g. a velocity request meant for
+    the bridge); everything else is forwarded unchanged by the shell.
+    """
+
+    consumed: bool = False
+    out: tuple[Outgoing, ...] = ()
+
+
+NOTHING = Reaction()

@@ -1,0 +1,78 @@
+"""The whole pure core: messages and the current time in, messages out. No sockets, no clock.
+
+`Core` composes the command flow (rover_bridge.bridge.CommandCore) and the estimate flow
+(rover_bridge.estimation.EstimateCore), which share one Identity and one Reporter, and sends
+the bridge's own HEARTBEAT. The shell (rover_bridge.runner) feeds every decoded message to
+`handle`, calls `tick` at `next_deadline_s()`, and calls `shutdown` on every exit path.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from rover_bridge.bridge import CommandCore
+from rover_bridge.estimation import EstimateCore
+from rover_bridge.identity import Identity
+from rover_bridge.mav import mavlink
+from rover_bridge.params import Profile
+from rover_bridge.report import Reporter
+from rover_bridge.wire import Incoming, Link, Outgoing, Reaction
+
+HEARTBEAT_PERIOD_S = 1.0
+
+
+class SubCore(Protocol):
+    def handle(self, inc: Incoming, now_s: float) -> Reaction: ...
+    def tick(self, now_s: float) -> list[Outgoing]: ...
+    def next_deadline_s(self, now_s: float) -> float: ...
+    def shutdown(self, now_s: float) -> list[Outgoing]: ...
+
+
+class Core:
+    def __init__(self, profile: Profile) -> None:
+        self.profile = profile
+        self.identity = Identity.from_profile(profile)
+        self.reporter = Reporter(self.identity)
+        self.command = CommandCore(profile, self.identity, self.reporter)
+        self.estimate = EstimateCore(profile, self.identity, self.reporter)
+        self._subcores: tuple[SubCore, ...] = (self.command, self.estimate)
+        self._next_heartbeat_s: float | None = None
+
+    def handle(self, inc: Incoming, now_s: float) -> Reaction:
+        consumed = False
+        out: list[Outgoing] = []
+        for sub in self._subcores:
+            reaction = sub.handle(inc, now_s)
+            consumed = consumed or reaction.consumed
+            out.extend(reaction.out)
+        return Reaction(consumed=consumed, out=tuple(out))
+
+    def tick(self, now_s: float) -> list[Outgoing]:
+        out: list[Outgoing] = []
+        if self._next_heartbeat_s is None or now_s >= self._next_heartbeat_s:
+            # Keep the 1 Hz grid; after a stall, restart it rather than bursting the missed beats.
+            last = self._next_heartbeat_s
+            self._next_heartbeat_s = (now_s if last is None or now_s - last > HEARTBEAT_PERIOD_S else last) \
+                + HEARTBEAT_PERIOD_S
+            out.extend(self._heartbeats())
+        for sub in self._subcores:
+            out.extend(sub.tick(now_s))
+        return out
+
+    def next_deadline_s(self, now_s: float) -> float:
+        hb = now_s if self._next_heartbeat_s is None else self._next_heartbeat_s
+        return min([hb] + [sub.next_deadline_s(now_s) for sub in self._subcores])
+
+    def shutdown(self, now_s: float) -> list[Outgoing]:
+        """Every subcore's safe-stop messages (neutral, then release), in order."""
+        out: list[Outgoing] = []
+        for sub in self._subcores:
+            out.extend(sub.shutdown(now_s))
+        return out
+
+    def _heartbeats(self) -> list[Outgoing]:
+        msg = mavlink.MAVLink_heartbeat_message(
+            type=mavlink.MAV_TYPE_ONBOARD_CONTROLLER, autopilot=mavlink.MAV_AUTOPILOT_INVALID,
+            base_mode=0, custom_mode=0, system_status=mavlink.MAV_STATE_ACTIVE, mavlink_version=3)
+        sysid, compid = self.identity.own_system_id, self.identity.component_id
+        return [Outgoing(Link.GCS, msg, sysid, compid), Outgoing(Link.AUTOPILOT, msg, sysid, compid)]

@@ -1,0 +1,47 @@
+"""The one place where MAVLink's sign and frame conventions meet rover-bridge's.
+
+MAVLink: NED / FRD, yaw and yaw rates clockwise positive (seen from above), body y to the
+right. rover-bridge inside: x forward, y left, yaw and omega counter-clockwise positive.
+Most bugs in this field are sign bugs; every conversion lives here and is tested with a
+spin in place and a right turn.
+"""
+
+from __future__ import annotations
+
+import math
+
+
+def omega_from_mavlink_yaw_rate(yaw_rate_cw_rad_s: float) -> float:
+    """MAVLink yaw rate (clockwise +, a right turn) -> omega (counter-clockwise +)."""
+    return -yaw_rate_cw_rad_s
+
+
+def mavlink_yaw_rate_from_omega(omega_ccw_rad_s: float) -> float:
+    """omega (counter-clockwise +) -> MAVLink yaw rate (clockwise +)."""
+    return -omega_ccw_rad_s
+
+
+def yaw_frd_from_yaw_flu(yaw_ccw_rad: float) -> float:
+    """Heading in our x-forward/y-left frame -> heading in the matching FRD frame (clockwise +)."""
+    return -yaw_ccw_rad
+
+
+def y_frd_from_y_flu(y_left_m: float) -> float:
+    """Lateral coordinate: y left (ours) -> y right (FRD)."""
+    return -y_left_m
+
+
+def quaternion_from_yaw(yaw_rad: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of a pure rotation about the down (FRD/NED) axis by `yaw_rad` (clockwise +)."""
+    half = 0.5 * yaw_rad
+    return (math.cos(half), 0.0, 0.0, math.sin(half))
+
+
+def ned_heading_rad(v_north_m_s: float, v_east_m_s: float) -> float:
+    """Direction of a horizontal NED velocity, clockwise from north (as ATTITUDE.yaw)."""
+    return math.atan2(v_east_m_s, v_north_m_s)
+
+
+def heading_error_rad(target_cw_rad: float, current_cw_rad: float) -> float:
+    """Signed shortest turn from current to target, clockwise + (positive = turn right), in [-pi, pi]."""
+    return math.remainder(target_cw_rad - current_cw_rad, 2.0 * math.pi)
