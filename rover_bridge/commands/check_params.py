@@ -4,17 +4,25 @@ from __future__ import annotations
 
 import argparse
 
-from rover_bridge.params import load_profile, profile_to_toml
+from rover_bridge.errors import ConfigError
+from rover_bridge.params import load_profile, markdown_table, profile_to_toml
 
 NAME = "check-params"
 HELP = "validate a robot profile (TOML) and print it fully resolved"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", help="profile to check, e.g. params/default.toml")
+    parser.add_argument("file", nargs="?", help="profile to check, e.g. params/default.toml")
+    parser.add_argument("--table", action="store_true",
+                        help="print the parameter reference as a Markdown table (the README's) and exit")
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.table:
+        print(markdown_table(), end="")
+        return 0
+    if not args.file:
+        raise ConfigError(["check-params: give a profile FILE (or --table)"])
     profile = load_profile(args.file)  # ConfigError -> cli prints every problem, exit 2
     print(f"# {args.file}: OK, fully resolved (defaults filled in)")
     print(profile_to_toml(profile), end="")

@@ -1,0 +1,94 @@
+"""rover-bridge run: the process on the rover's companion computer.
+
+On SIGINT / SIGTERM (and on any unexpected exception) it sends neutral, then releases the
+overrides, then exits: 0 for a signal, 1 for an exception.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import time
+from types import FrameType
+
+from rover_bridge.core import Core
+from rover_bridge.errors import ConfigError
+from rover_bridge.links import Endpoint, check_url
+from rover_bridge.params import load_profile
+from rover_bridge.runner import Runner, TlogWriter
+from rover_bridge.wire import Link
+
+NAME = "run"
+HELP = "bridge an autopilot and ground stations: velocity requests in, wheel overrides and ODOMETRY out"
+
+log = logging.getLogger("rover_bridge.run")
+
+DEFAULT_AUTOPILOT = "tcp:127.0.0.1:5760"
+DEFAULT_GCS = "udpout:127.0.0.1:14550"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--params", default="params/default.toml", help="robot profile (TOML); default %(default)s")
+    parser.add_argument("--autopilot", default=DEFAULT_AUTOPILOT,
+                        help="autopilot link: /dev/ttyAMA0,921600 on a rover, tcp:127.0.0.1:5760 for ArduPilot SITL "
+                             "(default %(default)s)")
+    parser.add_argument("--gcs", action="append", default=None, metavar="URL",
+                        help=f"ground-station link, repeatable (default {DEFAULT_GCS}: QGroundControl and MAVProxy "
+                             "listen there); 'none' for no ground station")
+    parser.add_argument("--tlog", default=None, metavar="PATH",
+                        help="record every MAVLink frame seen and sent to this .tlog (MAVProxy/pymavlink format)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop safely after this many seconds (tests, demos)")
+
+
+def main(args: argparse.Namespace) -> int:
+    profile = load_profile(args.params)
+    gcs_urls = [u for u in (args.gcs or [DEFAULT_GCS]) if u.lower() != "none"]
+    problems = [p for p in (check_url(u) for u in [args.autopilot, *gcs_urls]) if p]
+    if args.duration is not None and not args.duration > 0:
+        problems.append(f"--duration: expected a positive number of seconds, got {args.duration}")
+    if problems:
+        raise ConfigError(problems)
+    core = Core(profile)
+    own_sys, own_comp = core.identity.own_system_id, core.identity.component_id
+    autopilot = Endpoint(args.autopilot, Link.AUTOPILOT, source_system=own_sys, source_component=own_comp)
+    gcs = [Endpoint(u, Link.GCS, source_system=own_sys, source_component=own_comp) for u in gcs_urls]
+    tlog = TlogWriter(open(args.tlog, "wb")) if args.tlog else None  # noqa: SIM115 - closed by the runner
+    runner = Runner(core, autopilot, gcs, tlog=tlog)
+
+    stop_requested: list[int] = []
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(read_fd, False)
+    os.set_blocking(write_fd, False)
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop_requested.append(signum)
+
+    old_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    old_wakeup = signal.set_wakeup_fd(write_fd)  # wakes select() at once, so the stop is not delayed
+    start = time.monotonic()
+    end = None if args.duration is None else start + args.duration
+    log.warning("rover-bridge running: autopilot %s, gcs %s, profile %s", args.autopilot,
+                ", ".join(gcs_urls) or "none", args.params)
+    code = 0
+    try:
+        runner.run(lambda: bool(stop_requested) or (end is not None and time.monotonic() >= end),
+                   wake_fd=read_fd)
+    except Exception:
+        log.exception("unexpected error: stopping the rover and exiting")
+        code = 1
+    finally:
+        try:
+            runner.stop_safely(time.monotonic())
+        finally:
+            runner.close()
+            signal.set_wakeup_fd(old_wakeup)
+            for s, h in old_handlers.items():
+                signal.signal(s, h)
+            os.close(read_fd)
+            os.close(write_fd)
+    if stop_requested:
+        log.warning("stopped by signal %d: neutral sent, overrides released", stop_requested[0])
+    return code

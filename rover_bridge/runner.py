@@ -1,0 +1,149 @@
+"""The shell around the pure core: read links, call the core, forward and write, keep time.
+
+`Runner.step(now_s)` is one non-blocking pass (drain every link, handle each frame, tick when
+a deadline is due); `Runner.run()` repeats it against the wall clock, sleeping in select()
+until a frame arrives or the next deadline. Tests drive `step` with a simulated clock, so
+the same code runs in lockstep with the sitl emulator.
+
+Routing: frames from the autopilot go to every ground station; frames from a ground station
+go to the autopilot and the other ground stations, unless the core consumed them (velocity
+requests meant for the bridge). Forwarded frames are written as received: source ids,
+sequence numbers and signatures intact.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import struct
+import time
+from collections.abc import Callable, Sequence
+from typing import BinaryIO
+
+from rover_bridge.core import Core
+from rover_bridge.links import Endpoint
+from rover_bridge.mav import MAVLinkMessage
+from rover_bridge.wire import Incoming, Link, Outgoing
+
+log = logging.getLogger("rover_bridge.runner")
+
+# Longest select() sleep: bounds how late a stop request or a missed deadline can be noticed.
+MAX_SLEEP_S = 0.05
+
+
+class TlogWriter:
+    """Standard .tlog: each frame preceded by its wall-clock time as big-endian uint64 microseconds."""
+
+    def __init__(self, stream: BinaryIO, wall_clock: Callable[[], float] = time.time) -> None:
+        self.stream = stream
+        self.wall_clock = wall_clock
+        self.frames = 0
+
+    def write(self, frame: bytes) -> None:
+        self.stream.write(struct.pack(">Q", int(self.wall_clock() * 1e6)) + frame)
+        self.frames += 1
+
+    def close(self) -> None:
+        self.stream.flush()
+        self.stream.close()
+
+
+class Runner:
+    def __init__(self, core: Core, autopilot: Endpoint, gcs: Sequence[Endpoint] = (),
+                 tlog: TlogWriter | None = None) -> None:
+        self.core = core
+        self.autopilot = autopilot
+        self.gcs = list(gcs)
+        self.tlog = tlog
+        self.forwarded = 0
+        self.consumed = 0
+        self.ticks = 0
+        self._stopped = False
+
+    @property
+    def endpoints(self) -> list[Endpoint]:
+        return [self.autopilot, *self.gcs]
+
+    def step(self, now_s: float) -> None:
+        """Drain every link, handle every frame, then tick if a deadline is due. Never blocks."""
+        for ep in self.endpoints:
+            for msg in ep.read():
+                self._on_message(ep, msg, now_s)
+        if now_s >= self.core.next_deadline_s(now_s):
+            self.ticks += 1
+            self.send_all(self.core.tick(now_s))
+
+    def _on_message(self, ep: Endpoint, msg: MAVLinkMessage, now_s: float) -> None:
+        frame = msg.get_msgbuf()
+        if self.tlog is not None:
+            self.tlog.write(bytes(frame))
+        reaction = self.core.handle(Incoming(ep.role, msg, signed_ok=_signed_ok(ep, msg)), now_s)
+        if reaction.consumed:
+            self.consumed += 1
+        else:
+            targets = self.gcs if ep.role is Link.AUTOPILOT else [self.autopilot, *self.gcs]
+            for other in targets:
+                if other is not ep:
+                    other.write_frame(bytes(frame))
+                    self.forwarded += 1
+        if reaction.out:
+            self.send_all(reaction.out)
+
+    def send_all(self, out: Sequence[Outgoing]) -> None:
+        for item in out:
+            dests = [self.autopilot] if item.dest is Link.AUTOPILOT else self.gcs
+            for ep in dests:
+                frame = ep.send(item.msg, item.src_system, item.src_component)
+                if self.tlog is not None and ep is dests[0]:
+                    self.tlog.write(frame)
+
+    def wait(self, now_s: float, clock: Callable[[], float], extra_fds: Sequence[int] = ()) -> None:
+        """Sleep until a link is readable, an extra fd (signal wake-up) is, or the next deadline."""
+        timeout = min(MAX_SLEEP_S, max(0.0, self.core.next_deadline_s(now_s) - clock()))
+        fds = [fd for fd in (ep.fileno() for ep in self.endpoints) if fd is not None] + list(extra_fds)
+        if timeout > 0.0:
+            select.select(fds, [], [], timeout)
+
+    def run(self, should_stop: Callable[[], bool], clock: Callable[[], float] = time.monotonic,
+            wake_fd: int | None = None) -> None:
+        """Serve until `should_stop()`; the caller then calls `stop_safely` (also on exceptions)."""
+        extra = [wake_fd] if wake_fd is not None else []
+        while not should_stop():
+            now = clock()
+            self.step(now)
+            self.wait(now, clock, extra)
+            if wake_fd is not None:
+                _drain(wake_fd)
+
+    def stop_safely(self, now_s: float) -> None:
+        """Send the core's safe-stop sequence (neutral, then release). Safe to call twice."""
+        if self._stopped:
+            return
+        self._stopped = True
+        # Whatever arrived last still counts (e.g. a final ACK); a broken link must not block the stop.
+        try:
+            self.send_all(self.core.shutdown(now_s))
+        finally:
+            if self.tlog is not None:
+                self.tlog.close()
+
+    def close(self) -> None:
+        for ep in self.endpoints:
+            ep.close()
+
+
+def _signed_ok(ep: Endpoint, msg: MAVLinkMessage) -> bool:
+    """True when the frame was signed and pymavlink verified it against this link's key."""
+    signing = getattr(ep.conn.mav, "signing", None)
+    if signing is None or signing.secret_key is None:
+        return False
+    return bool(getattr(msg, "_signed", False))
+
+
+def _drain(fd: int) -> None:
+    try:
+        while os.read(fd, 512):
+            pass
+    except (BlockingIOError, InterruptedError):
+        pass
