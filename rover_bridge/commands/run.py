@@ -7,6 +7,7 @@ overrides, then exits: 0 for a signal, 1 for an exception.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import signal
@@ -39,6 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "listen there); 'none' for no ground station")
     parser.add_argument("--tlog", default=None, metavar="PATH",
                         help="record every MAVLink frame seen and sent to this .tlog (MAVProxy/pymavlink format)")
+    parser.add_argument("--stats-json", default=None, metavar="PATH",
+                        help="on exit, write the bridge's counters (rejections, states, links) here as JSON")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop safely after this many seconds (tests, demos)")
 
@@ -89,6 +92,22 @@ def main(args: argparse.Namespace) -> int:
                 signal.signal(s, h)
             os.close(read_fd)
             os.close(write_fd)
+    if args.stats_json:
+        write_stats(args.stats_json, runner)
     if stop_requested:
         log.warning("stopped by signal %d: neutral sent, overrides released", stop_requested[0])
     return code
+
+
+def write_stats(path: str, runner: Runner) -> None:
+    """Counters of every part, for the demo's report and for post-mortems."""
+    core = runner.core
+    stats = {
+        "command": dict(core.command.counters),
+        "estimate": dict(core.estimate.counters),
+        "runner": {"forwarded": runner.forwarded, "consumed": runner.consumed, "ticks": runner.ticks},
+        "links": {ep.url: {"rx": ep.rx_frames, "rx_bad": ep.rx_bad, "tx": ep.tx_frames} for ep in runner.endpoints},
+        "statustext_suppressed": dict(core.reporter.limiter.suppressed),
+    }
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump(stats, f, indent=1, default=str)

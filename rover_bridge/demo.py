@@ -1,0 +1,430 @@
+"""`rover-bridge demo`: the emulator and the bridge as separate processes on UDP loopback, a
+scripted ground station driving a route through the bridge, and a report against ground truth.
+
+Processes: `python -m sitl` (the autopilot, ground truth) <-> `python -m rover_bridge run`
+<-> this process (the GCS). The GCS sees everything through the bridge, as a real ground
+station would: ODOMETRY from the bridge, and the emulator's telemetry forwarded (its
+ground-truth LOCAL_POSITION_NED/SIMSTATE, and WHEEL_DISTANCE from which raw wheel odometry
+is integrated here, for comparison).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from rover_bridge.frames import mavlink_yaw_rate_from_omega
+from rover_bridge.mav import mavlink, mavutil
+from rover_bridge.odometry import WheelOdometry
+
+GCS_SYSID = 255
+GCS_COMPID = 190
+REQUEST_RATE_HZ = 10.0
+BODY_MASK = 0b0000_0101_1100_0111  # velocity + yaw rate used; position, accel, yaw ignored
+EARTH_MASK = 0b0000_1101_1100_0111  # velocity used; yaw and yaw rate ignored
+
+
+@dataclass(frozen=True)
+class Request:
+    """One SET_POSITION_TARGET_LOCAL_NED the GCS repeats at 10 Hz during a phase."""
+
+    frame: int
+    vx_m_s: float
+    vy_m_s: float
+    yaw_rate_cw_rad_s: float
+    type_mask: int
+
+
+def body(v_m_s: float, omega_ccw_rad_s: float) -> Request:
+    return Request(mavlink.MAV_FRAME_BODY_NED, v_m_s, 0.0, mavlink_yaw_rate_from_omega(omega_ccw_rad_s), BODY_MASK)
+
+
+def earth(v_north_m_s: float, v_east_m_s: float) -> Request:
+    return Request(mavlink.MAV_FRAME_LOCAL_NED, v_north_m_s, v_east_m_s, 0.0, EARTH_MASK)
+
+
+@dataclass(frozen=True)
+class Phase:
+    name: str
+    duration_s: float
+    request: Request | None  # None: send nothing (the bridge's timeout brakes the rover)
+
+
+def route(scale: float = 1.0) -> list[Phase]:
+    """Straight run, spin in place, a square (earth-frame legs), a figure eight, a stop."""
+    s = scale
+    spin_rate = 1.5
+    eight_v, eight_w = 0.4, 1.0
+    leg_v, leg_s = 0.4, 3.2 * s
+    phases = [Phase("straight", 4.0 * s, body(0.5, 0.0)),
+              Phase("spin", 2.0 * math.pi / spin_rate * max(s, 0.5), body(0.0, spin_rate))]
+    for name, (vn, ve) in (("square N", (leg_v, 0.0)), ("square E", (0.0, leg_v)),
+                           ("square S", (-leg_v, 0.0)), ("square W", (0.0, -leg_v))):
+        phases.append(Phase(name, leg_s, earth(vn, ve)))
+    phases += [Phase("eight left", 2.0 * math.pi / eight_w * max(s, 0.5), body(eight_v, eight_w)),
+               Phase("eight right", 2.0 * math.pi / eight_w * max(s, 0.5), body(eight_v, -eight_w)),
+               Phase("stop", 1.0, body(0.0, 0.0)),
+               Phase("timeout", 1.5, None)]
+    return phases
+
+
+@dataclass
+class Series:
+    """Time series the GCS collected (t is seconds since the route started)."""
+
+    truth: list[tuple[float, float, float, float]] = field(default_factory=list)  # t, north, east, yaw_cw
+    ekf: list[tuple[float, float, float, float]] = field(default_factory=list)  # t, x_fwd, y_right, yaw_cw
+    wheel: list[tuple[float, float, float, float]] = field(default_factory=list)
+    odometry_msgs: int = 0
+    statustext: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Summary:
+    distance_m: float
+    wheel_final_m: float
+    wheel_max_m: float
+    ekf_final_m: float
+    ekf_max_m: float
+    wheel_heading_max_deg: float
+    ekf_heading_max_deg: float
+    latency_p50_ms: float
+    latency_p99_ms: float
+    rejected: int
+    odometry_rate_hz: float
+
+    def table(self) -> str:
+        rows = [("distance driven", f"{self.distance_m:.2f} m", ""),
+                ("final position error", f"{self.wheel_final_m:.3f} m", f"{self.ekf_final_m:.3f} m"),
+                ("max position error", f"{self.wheel_max_m:.3f} m", f"{self.ekf_max_m:.3f} m"),
+                ("max heading error", f"{self.wheel_heading_max_deg:.2f} deg", f"{self.ekf_heading_max_deg:.2f} deg"),
+                ("request->override latency p50/p99", f"{self.latency_p50_ms:.2f} / {self.latency_p99_ms:.2f} ms", ""),
+                ("ODOMETRY rate at the GCS", f"{self.odometry_rate_hz:.1f} Hz", ""),
+                ("requests rejected by the bridge", str(self.rejected), "")]
+        out = [f"{'':36s} {'wheel odometry':>18s} {'EKF (published)':>18s}"]
+        out += [f"{a:36s} {b:>18s} {c:>18s}" for a, b, c in rows]
+        return "\n".join(out)
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.__dict__.items()}
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+    return port
+
+
+SCENARIOS: dict[str, tuple[str, str]] = {
+    # name: (vehicle TOML for the emulator, scenario TOML events); the bridge is told nominal geometry.
+    "clean": ("", ""),
+    "miscalibrated": ("true_right_radius_m = 0.051\ntrue_track_width_m = 0.309\n", ""),
+    "slip": ("", '[[event]]\nkind = "slip"\nwheel = "left"\nratio = 0.3\nstart_s = 6.0\nduration_s = 4.0\n'
+                 '[[event]]\nkind = "slip"\nwheel = "right"\nratio = 0.25\nstart_s = 18.0\nduration_s = 3.0\n'),
+    "gyro-bias": ("gyro_bias_rad_s = 0.02\n", ""),
+}
+
+
+def _wrap(a: float) -> float:
+    return math.remainder(a, 2.0 * math.pi)
+
+
+def _interp(series: list[tuple[float, float, float, float]], t: float) -> tuple[float, float, float] | None:
+    """Sample-and-hold value of a series at time t (the latest sample not after t)."""
+    lo, hi = 0, len(series) - 1
+    if not series or series[0][0] > t:
+        return None
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if series[mid][0] <= t:
+            lo = mid
+        else:
+            hi = mid - 1
+    _, a, b, c = series[lo]
+    return a, b, c
+
+
+def errors_over_time(series: Series) -> list[tuple[float, float, float, float, float]]:
+    """(t, wheel position error, ekf position error, wheel heading error deg, ekf heading error deg)."""
+    out = []
+    for t, n, e, yaw in series.truth:
+        w = _interp(series.wheel, t)
+        k = _interp(series.ekf, t)
+        if w is None or k is None:
+            continue
+        out.append((t, math.hypot(w[0] - n, w[1] - e), math.hypot(k[0] - n, k[1] - e),
+                    abs(math.degrees(_wrap(w[2] - yaw))), abs(math.degrees(_wrap(k[2] - yaw)))))
+    return out
+
+
+def percentile(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    idx = min(len(ordered) - 1, max(0, int(math.ceil(q / 100.0 * len(ordered))) - 1))
+    return ordered[idx]
+
+
+def latencies_from_tlog(path: Path) -> list[float]:
+    """Request -> override latency inside the bridge, from its own .tlog (frames in and out, timestamped)."""
+    if not path.exists():
+        return []
+    log: Any = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    pending: float | None = None
+    out: list[float] = []
+    while True:
+        msg = log.recv_match(type=["SET_POSITION_TARGET_LOCAL_NED", "RC_CHANNELS_OVERRIDE"])
+        if msg is None:
+            break
+        if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
+            pending = msg._timestamp
+        elif pending is not None:
+            out.append((msg._timestamp - pending) * 1000.0)
+            pending = None
+    log.close()
+    return out
+
+
+class Demo:
+    def __init__(self, scenario: str = "clean", scale: float = 1.0, seed: int = 1,
+                 progress: TextIO | None = sys.stderr, workdir: Path | None = None) -> None:
+        if scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIOS)}")
+        self.scenario = scenario
+        self.scale = scale
+        self.seed = seed
+        self.progress = progress
+        self.workdir = workdir
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.series = Series()
+
+    @contextlib.contextmanager
+    def _processes(self, tmp: Path) -> Iterator[Any]:
+        ap_port, gcs_port = free_udp_port(), free_udp_port()
+        vehicle_toml, scenario_toml = SCENARIOS[self.scenario]
+        vehicle = tmp / "vehicle.toml"
+        vehicle.write_text(vehicle_toml)
+        profile = tmp / "profile.toml"
+        profile.write_text('[odometry]\ntargets = "gcs"\n')
+        sitl_cmd = [sys.executable, "-m", "sitl", "--connect", f"udpin:127.0.0.1:{ap_port}", "--seed",
+                    str(self.seed), "--start-armed", "--vehicle", str(vehicle)]
+        if scenario_toml:
+            (tmp / "scenario.toml").write_text(scenario_toml)
+            sitl_cmd += ["--scenario", str(tmp / "scenario.toml")]
+        bridge_cmd = [sys.executable, "-m", "rover_bridge", "run", "--params", str(profile),
+                      "--autopilot", f"udpout:127.0.0.1:{ap_port}", "--gcs", f"udpin:127.0.0.1:{gcs_port}",
+                      "--tlog", str(tmp / "bridge.tlog"), "--stats-json", str(tmp / "stats.json")]
+        # Own process groups: a terminal's Ctrl-C reaches only the demo, which then stops them in order.
+        for cmd, log_name in ((sitl_cmd, "sitl.log"), (bridge_cmd, "bridge.log")):
+            with open(tmp / log_name, "wb") as log_file:
+                self.procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT,
+                                                   start_new_session=True))
+        gcs: Any = mavutil.mavlink_connection(f"udpout:127.0.0.1:{gcs_port}", source_system=GCS_SYSID,
+                                              source_component=GCS_COMPID, dialect="ardupilotmega")
+        try:
+            yield gcs
+        finally:
+            gcs.close()
+            self.stop_processes()
+
+    def stop_processes(self) -> None:
+        """SIGTERM the bridge first (it releases the overrides), then the emulator; SIGKILL stragglers."""
+        for proc in reversed(self.procs):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    proc.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+
+    def run(self) -> tuple[Summary, list[tuple[float, float, float, float, float]], dict[str, Any]]:
+        with tempfile.TemporaryDirectory(prefix="rover-bridge-demo-") as tmp_name:
+            tmp = Path(tmp_name) if self.workdir is None else self.workdir
+            tmp.mkdir(parents=True, exist_ok=True)
+            with self._processes(tmp) as gcs:
+                self._wait_ready(gcs)
+                self._drive(gcs)
+            for proc, name in zip(self.procs, ("sitl", "bridge"), strict=True):
+                if proc.returncode not in (0, -signal.SIGTERM):
+                    text = (tmp / f"{name}.log").read_text(errors="replace")[-2000:]
+                    raise RuntimeError(f"{name} exited with {proc.returncode}:\n{text}")
+            stats: dict[str, Any] = {}
+            if (tmp / "stats.json").exists():
+                stats = json.loads((tmp / "stats.json").read_text())
+            latencies = latencies_from_tlog(tmp / "bridge.tlog")
+        errs = errors_over_time(self.series)
+        return self._summarise(errs, latencies, stats), errs, stats
+
+    def _say(self, text: str) -> None:
+        if self.progress is not None:
+            self.progress.write("\r" + text.ljust(78)[:78])
+            self.progress.flush()
+
+    def _wait_ready(self, gcs: Any, timeout_s: float = 15.0) -> None:
+        """Until the bridge forwards the autopilot's heartbeat and publishes ODOMETRY."""
+        deadline = time.monotonic() + timeout_s
+        seen_ap = seen_odom = False
+        next_hb = 0.0
+        while not (seen_ap and seen_odom):
+            now = time.monotonic()
+            if now > deadline:
+                raise RuntimeError("the emulator and the bridge did not come up within "
+                                   f"{timeout_s:.0f} s (autopilot heartbeat: {seen_ap}, odometry: {seen_odom})")
+            for proc in self.procs:
+                if proc.poll() is not None:
+                    raise RuntimeError(f"{proc.args[2]} exited early with {proc.returncode}")
+            if now >= next_hb:
+                gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                next_hb = now + 0.5
+            msg = gcs.recv_match(blocking=True, timeout=0.1)
+            if msg is None:
+                continue
+            if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1 and not seen_ap:
+                seen_ap = True
+                # Ground truth at 20 Hz from the emulator, asked for through the bridge like any GCS would.
+                for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_SIMSTATE):
+                    gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 50_000,
+                                              0, 0, 0, 0, 0)
+            if msg.get_type() == "ODOMETRY":
+                seen_odom = True
+            self._say(f"starting: autopilot {'up' if seen_ap else '...'}, bridge {'up' if seen_odom else '...'}")
+
+    def _drive(self, gcs: Any) -> None:
+        phases = route(self.scale)
+        total_s = sum(p.duration_s for p in phases)
+        wheel = WheelOdometry(track_width_m=0.30)
+        origin: tuple[float, float, float] | None = None
+        start = time.monotonic()
+        next_req = next_hb = 0.0
+        phase_end = 0.0
+        for phase in phases:
+            phase_end += phase.duration_s
+            while (t := time.monotonic() - start) < phase_end:
+                if t >= next_hb:
+                    gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                    next_hb += 1.0
+                if phase.request is not None and t >= next_req:
+                    r = phase.request
+                    gcs.mav.set_position_target_local_ned_send(
+                        int(t * 1000), 1, 1, r.frame, r.type_mask, 0, 0, 0, r.vx_m_s, r.vy_m_s, 0, 0, 0, 0, 0,
+                        r.yaw_rate_cw_rad_s)
+                    next_req = t + 1.0 / REQUEST_RATE_HZ
+                msg = gcs.recv_match(blocking=True, timeout=0.01)
+                while msg is not None:
+                    origin = self._collect(msg, t, wheel, origin)
+                    msg = gcs.recv_match(blocking=False)
+                self._say(self._progress_line(phase.name, t, total_s))
+        if self.progress is not None:
+            self.progress.write("\n")
+
+    def _progress_line(self, phase: str, t: float, total_s: float) -> str:
+        done = int(20 * min(1.0, t / total_s))
+        pose = self.series.truth[-1] if self.series.truth else (0.0, 0.0, 0.0, 0.0)
+        return (f"[{'#' * done}{'.' * (20 - done)}] {t:5.1f}/{total_s:4.1f} s {phase:12s} "
+                f"N {pose[1]:+6.2f} E {pose[2]:+6.2f} yaw {math.degrees(pose[3]):+7.1f}")
+
+    def _collect(self, msg: Any, t: float, wheel: WheelOdometry,
+                 origin: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        kind = msg.get_type()
+        if kind == "SIMSTATE":
+            yaw = float(msg.yaw)
+            pos = getattr(self, "_last_ned", None)
+            if pos is not None:
+                self.series.truth.append((t, pos[0], pos[1], yaw))
+        elif kind == "LOCAL_POSITION_NED":
+            self._last_ned = (float(msg.x), float(msg.y))
+        elif kind == "ODOMETRY":
+            self.series.odometry_msgs += 1
+            w, _, _, z = msg.q
+            self.series.ekf.append((t, float(msg.x), float(msg.y), 2.0 * math.atan2(z, w)))
+        elif kind == "WHEEL_DISTANCE" and msg.count >= 2:
+            pose = wheel.update(left_m=float(msg.distance[0]), right_m=float(msg.distance[1]))
+            # Our pose is x forward / y left / yaw CCW; truth and ODOMETRY are y right, yaw CW.
+            self.series.wheel.append((t, pose.x_m, -pose.y_m, -pose.yaw_rad))
+        elif kind == "STATUSTEXT":
+            self.series.statustext.append(str(msg.text))
+        return origin
+
+    def _summarise(self, errs: list[tuple[float, float, float, float, float]], latencies: list[float],
+                   stats: dict[str, Any]) -> Summary:
+        truth = self.series.truth
+        distance = sum(math.hypot(b[1] - a[1], b[2] - a[2]) for a, b in zip(truth, truth[1:], strict=False))
+        counters = stats.get("command", {}) if isinstance(stats.get("command"), dict) else {}
+        rejected = sum(int(v) for k, v in counters.items() if k.startswith("rejected"))
+        ekf_times = [e[0] for e in self.series.ekf]
+        rate = (len(ekf_times) - 1) / (ekf_times[-1] - ekf_times[0]) if len(ekf_times) > 1 else 0.0
+        nan = float("nan")
+        return Summary(
+            distance_m=distance,
+            wheel_final_m=errs[-1][1] if errs else nan, wheel_max_m=max((e[1] for e in errs), default=nan),
+            ekf_final_m=errs[-1][2] if errs else nan, ekf_max_m=max((e[2] for e in errs), default=nan),
+            wheel_heading_max_deg=max((e[3] for e in errs), default=nan),
+            ekf_heading_max_deg=max((e[4] for e in errs), default=nan),
+            latency_p50_ms=percentile(latencies, 50), latency_p99_ms=percentile(latencies, 99),
+            rejected=rejected, odometry_rate_hz=rate)
+
+
+def plot(series: Series, errs: list[tuple[float, float, float, float, float]], path: Path,
+         title: str) -> None:
+    """Map of truth / wheel odometry / EKF, and errors over time; needs matplotlib."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_map, ax_err) = plt.subplots(2, 1, figsize=(7, 9), gridspec_kw={"height_ratios": [3, 1.3]})
+    for data, label, style in ((series.truth, "ground truth", "k-"), (series.wheel, "wheel odometry", "C1--"),
+                               (series.ekf, "EKF (ODOMETRY)", "C0-")):
+        # East on the horizontal axis, north up: the map as seen from above.
+        ax_map.plot([p[2] for p in data], [p[1] for p in data], style, label=label, linewidth=1.4)
+    ax_map.set_aspect("equal", adjustable="datalim")
+    ax_map.set_xlabel("east [m]")
+    ax_map.set_ylabel("north [m]")
+    ax_map.set_title(title)
+    ax_map.legend(loc="best")
+    ax_map.grid(True, alpha=0.3)
+    ts = [e[0] for e in errs]
+    ax_err.plot(ts, [e[1] for e in errs], "C1--", label="wheel odometry")
+    ax_err.plot(ts, [e[2] for e in errs], "C0-", label="EKF")
+    ax_err.set_xlabel("time [s]")
+    ax_err.set_ylabel("position error [m]")
+    ax_err.grid(True, alpha=0.3)
+    ax_err.legend(loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def run_demo(scenario: str, scale: float, seed: int, plot_path: Path | None,
+             out: Callable[[str], None] = print) -> Summary:
+    demo = Demo(scenario=scenario, scale=scale, seed=seed)
+    try:
+        summary, errs, stats = demo.run()
+    finally:
+        demo.stop_processes()
+    out(f"\nrover-bridge demo: scenario {scenario!r}, {len(demo.series.truth)} truth samples, "
+        f"{demo.series.odometry_msgs} ODOMETRY messages\n")
+    out(summary.table())
+    if plot_path is not None:
+        try:
+            plot(demo.series, errs, plot_path, f"rover-bridge demo ({scenario})")
+            out(f"\npicture: {plot_path}")
+        except ImportError:
+            out("\npicture skipped: matplotlib is not installed (pip install 'rover-bridge[plot]')")
+    if os.environ.get("ROVER_BRIDGE_DEMO_JSON"):
+        Path(os.environ["ROVER_BRIDGE_DEMO_JSON"]).write_text(json.dumps(summary.as_dict()))
+    return summary
