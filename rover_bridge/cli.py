@@ -16,7 +16,7 @@ from rover_bridge import __version__
 from rover_bridge.errors import ConfigError
 
 # Imported lazily so that `rover-bridge check-params` does not pay for pymavlink's import.
-COMMAND_MODULES = ("check_params",)
+COMMAND_MODULES = ("check_params", "ik")
 
 
 def _load(module_name: str) -> ModuleType:
@@ -24,7 +24,10 @@ def _load(module_name: str) -> ModuleType:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rover-bridge", description=__doc__.splitlines()[0] if __doc__ else None)
+    # allow_abbrev=False: otherwise a subcommand option such as `ik --v` is taken as an
+    # ambiguous abbreviation of --version/--verbose by this top-level parser.
+    parser = argparse.ArgumentParser(prog="rover-bridge", allow_abbrev=False,
+                                     description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--version", action="version", version=f"rover-bridge {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
