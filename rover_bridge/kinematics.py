@@ -54,7 +54,8 @@ class WheelSpeeds:
 
 
 def _check_positive(name: str, value: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0.0:
+    if (isinstance(value, bool) or not isinstance(value, (int, float))
+            or not math.isfinite(value) or value <= 0.0):
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
     return float(value)
 
@@ -79,7 +80,8 @@ class DiffDrive:
     @classmethod
     def from_params(cls, robot: RobotParams) -> DiffDrive:
         return cls(wheel_radius_m=robot.wheel_radius_m, track_width_m=robot.track_width_m,
-                   left_wheel_radius_m=robot.left_wheel_radius_m, right_wheel_radius_m=robot.right_wheel_radius_m)
+                   left_wheel_radius_m=robot.left_wheel_radius_m,
+                   right_wheel_radius_m=robot.right_wheel_radius_m)
 
     @property
     def left_radius_m(self) -> float:
@@ -120,8 +122,11 @@ def m_s_to_rad_s(m_s: float, radius_m: float) -> float:
 
 def ticks_to_m(ticks: float, counts_per_rev: float, radius_m: float) -> float:
     """Distance rolled by a wheel whose encoder counted `ticks`."""
-    return ticks / _check_positive("counts_per_rev", counts_per_rev) * 2.0 * math.pi * radius_m
+    return (ticks / _check_positive("counts_per_rev", counts_per_rev)
+            * 2.0 * math.pi * _check_positive("radius_m", radius_m))
 
 
 def m_to_ticks(distance_m: float, counts_per_rev: float, radius_m: float) -> float:
-    return distance_m / (2.0 * math.pi * _check_positive("radius_m", radius_m)) * counts_per_rev
+    """Encoder ticks counted while a wheel of `radius_m` rolls `distance_m`."""
+    return (distance_m / (2.0 * math.pi * _check_positive("radius_m", radius_m))
+            * _check_positive("counts_per_rev", counts_per_rev))
