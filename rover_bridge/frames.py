@@ -45,3 +45,19 @@ def ned_heading_rad(v_north_m_s: float, v_east_m_s: float) -> float:
 def heading_error_rad(target_cw_rad: float, current_cw_rad: float) -> float:
     """Signed shortest turn from current to target, clockwise + (positive = turn right), in [-pi, pi]."""
     return math.remainder(target_cw_rad - current_cw_rad, 2.0 * math.pi)
+
+
+def heading_from_body_yaw_rad(current_cw_rad: float, body_yaw_cw_rad: float) -> float:
+    """A yaw given in a body frame (relative, clockwise +) -> absolute heading from north, in [-pi, pi]."""
+    return math.remainder(current_cw_rad + body_yaw_cw_rad, 2.0 * math.pi)
+
+
+def omega_toward_heading(target_cw_rad: float, current_cw_rad: float, kp_1_s: float,
+                         max_rad_s: float) -> float:
+    """Proportional heading controller: omega (counter-clockwise +) that turns toward `target_cw_rad`.
+
+    A positive (clockwise) heading error is a right turn, which is a negative omega here.
+    """
+    yaw_rate_cw = kp_1_s * heading_error_rad(target_cw_rad, current_cw_rad)
+    yaw_rate_cw = max(-max_rad_s, min(max_rad_s, yaw_rate_cw))
+    return omega_from_mavlink_yaw_rate(yaw_rate_cw)

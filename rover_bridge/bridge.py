@@ -1,0 +1,361 @@
+"""The command flow's pure core: velocity requests in, wheel overrides out, safely.
+
+request -> TwistLimiter -> DiffDrive inverse kinematics -> desaturation at max_wheel_rpm ->
+per-wheel PWM -> RC_CHANNELS_OVERRIDE (or DO_SET_SERVO) to the autopilot.
+
+Decisions (the README repeats them for users):
+
+- Outputs go out every 1/rate_hz in every state once the vehicle's system id is known; only
+  ACTIVE and BRAKING may send anything but neutral (trim on both wheels). Holding neutral while
+  idle keeps the rover still for as long as the bridge is alive; releasing instead would hand the
+  passthrough motor outputs to whatever the RC receiver says (possibly nothing, or an off-centre
+  stick). A dead bridge is covered by the autopilot's override timeout (RC_OVERRIDE_TIME), and
+  every exit path the shell can reach calls `shutdown`: neutral, then release.
+- Before the vehicle's id is known nothing is sent at all (an override cannot be addressed).
+- A valid request is followed at once: the output goes out in the same `handle` call, through
+  the limiter with dt = time since the last output, capped at one period (after a stalled loop the
+  limiter must not allow a jump worth the whole stall).
+- No valid request for command.setpoint_timeout_s: BRAKING, the limiter ramps to zero at its
+  deceleration limits; once at zero the request is dropped and the state is IDLE (neutral).
+- Autopilot heartbeat silent for safety.heartbeat_timeout_s: LINK_LOST, immediately neutral
+  (no ramp: we no longer know what the autopilot does, and 3 s have already passed). The request
+  is dropped, so only a request received after the heartbeat returns drives again.
+- safety.require_armed: while the autopilot's heartbeat lacks MAV_MODE_FLAG_SAFETY_ARMED, hold
+  neutral (ArduPilot's RC passthrough drives the motors even when disarmed, so a disarm would
+  otherwise not stop the wheels). The request is dropped as on link loss.
+- Earth-frame (heading) requests need a fresh ATTITUDE from the autopilot (younger than
+  safety.attitude_timeout_s): without one they are rejected on arrival, and a stale yaw during
+  motion brakes like a timeout.
+- DO_SET_SERVO refused by the autopilot (servo mode): REFUSED, request dropped, trim on both
+  outputs; a fresh request tries again.
+- Requests are consumed only when addressed to the vehicle; while its id is unknown they are
+  forwarded untouched. Only requests arriving on the GCS side are considered.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+
+from rover_bridge.identity import Identity
+from rover_bridge.kinematics import DiffDrive, Twist2D
+from rover_bridge.limits import TwistLimiter, TwistLimits
+from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.outputs import OutputMap, WheelPwm
+from rover_bridge.params import Profile
+from rover_bridge.report import Reporter
+from rover_bridge.setpoints import (
+    REQUEST_TYPES,
+    BodyVelocity,
+    HeadingVelocity,
+    Rejected,
+    Request,
+    decode_request,
+)
+from rover_bridge.wire import NOTHING, Incoming, Link, Outgoing, Reaction
+
+log = logging.getLogger("rover_bridge.command")
+
+NO_ATTITUDE = "no_attitude"
+UNAUTHORISED = "unauthorised"
+
+
+class State(enum.Enum):
+    WAITING = "waiting"  # no autopilot heartbeat yet
+    IDLE = "idle"  # no request: neutral
+    ACTIVE = "active"  # following a fresh request
+    BRAKING = "braking"  # request timed out (or heading unknown): ramping to zero
+    LINK_LOST = "link_lost"  # autopilot heartbeat lost: neutral until it returns and a fresh request comes
+    DISARMED = "disarmed"  # require_armed and the autopilot is disarmed: neutral
+    REFUSED = "refused"  # the autopilot refused DO_SET_SERVO: neutral until a fresh request
+    STOPPED = "stopped"  # shutdown() has run: nothing more is sent
+
+
+STATE_TEXT = {
+    State.IDLE: (mavlink.MAV_SEVERITY_INFO, "RB: idle, wheels neutral"),
+    State.ACTIVE: (mavlink.MAV_SEVERITY_INFO, "RB: active, driving"),
+    State.BRAKING: (mavlink.MAV_SEVERITY_WARNING, "RB: no request, braking to a stop"),
+    State.LINK_LOST: (mavlink.MAV_SEVERITY_CRITICAL, "RB: autopilot heartbeat lost, neutral"),
+    State.DISARMED: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot disarmed, neutral"),
+    State.REFUSED: (mavlink.MAV_SEVERITY_ERROR, "RB: DO_SET_SERVO refused, neutral"),
+    State.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, overrides released"),
+}
+
+_DRIVING = (State.ACTIVE, State.BRAKING)
+_ACK_OK = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
+
+
+class CommandCore:
+    """Messages and the current time in, override messages out (see the module doc for the rules)."""
+
+    def __init__(self, profile: Profile, identity: Identity, reporter: Reporter) -> None:
+        self.profile = profile
+        self.identity = identity
+        self.reporter = reporter
+        self.drive = DiffDrive.from_params(profile.robot)
+        self.outputs = OutputMap.from_profile(profile)
+        self.limiter = TwistLimiter(TwistLimits.from_params(profile.limits))
+        self.period_s = 1.0 / profile.command.rate_hz
+        self.state = State.WAITING
+        self.counters: dict[str, int] = {}
+        self.last_wheel_pwm: WheelPwm | None = None
+        self.request: Request | None = None  # headings already made absolute
+        self._request_s: float | None = None
+        self._last_heartbeat_s: float | None = None
+        self._armed = False
+        self._yaw_cw_rad: float | None = None
+        self._yaw_s: float | None = None
+        self._last_output_s: float | None = None
+        self._next_output_s: float | None = None
+        self._refused = False
+        self._said: set[tuple[str, int, int]] = set()
+
+    # ----------------------------------------------------------------- read-only views
+
+    @property
+    def commanded(self) -> Twist2D:
+        """The twist of the last output (after the limiter)."""
+        return self.limiter.current
+
+    # ----------------------------------------------------------------- SubCore protocol
+
+    def handle(self, inc: Incoming, now_s: float) -> Reaction:
+        if self.state is State.STOPPED:
+            return NOTHING
+        msg = inc.msg
+        kind = msg.get_type()
+        if inc.link is Link.AUTOPILOT:
+            if kind == "HEARTBEAT":
+                return self._on_heartbeat(msg, now_s)
+            if kind == "ATTITUDE":
+                self._on_attitude(msg, now_s)
+            elif kind == "COMMAND_ACK":
+                return self._on_command_ack(msg, now_s)
+            return NOTHING
+        if kind in REQUEST_TYPES:
+            return self._on_request(inc, now_s)
+        return NOTHING
+
+    def tick(self, now_s: float) -> list[Outgoing]:
+        if self.state is State.STOPPED:
+            return []
+        due = self._next_output_s is None or now_s >= self._next_output_s
+        return self._advance(now_s, force_output=due)
+
+    def next_deadline_s(self, now_s: float) -> float:
+        if self.state is State.STOPPED or self.identity.vehicle_system_id is None:
+            return now_s + self.period_s  # nothing can be sent yet; look again a period later
+        deadlines = [now_s if self._next_output_s is None else self._next_output_s]
+        if self.state is State.ACTIVE and self._request_s is not None:
+            deadlines.append(self._request_s + self.profile.command.setpoint_timeout_s)
+        if self._last_heartbeat_s is not None and self.state is not State.LINK_LOST:
+            deadlines.append(self._last_heartbeat_s + self.profile.safety.heartbeat_timeout_s)
+        return min(deadlines)
+
+    def shutdown(self, now_s: float) -> list[Outgoing]:
+        """Neutral, then release (servo mode: trim on both outputs); nothing is sent afterwards."""
+        if self.state is State.STOPPED:
+            return []
+        self._drop_request()
+        vehicle = self.identity.vehicle_system_id
+        out: list[Outgoing] = []
+        if vehicle is not None:
+            target = (vehicle, self.identity.autopilot_component_id)
+            msgs = self.outputs.command(self.outputs.neutral, *target)
+            if self.outputs.mode == "rc_override":
+                msgs += self.outputs.release(*target)
+            out += [self._to_autopilot(m) for m in msgs]
+            self.last_wheel_pwm = self.outputs.neutral
+        out += self._set_state(State.STOPPED, now_s)
+        return out
+
+    # ----------------------------------------------------------------- hooks
+
+    def _authorised(self, inc: Incoming) -> bool:
+        """Hook for [security] (allow-list, inc.signed_ok): may this source command the rover?"""
+        return True
+
+    # ----------------------------------------------------------------- incoming
+
+    def _on_heartbeat(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
+        if not self.identity.is_autopilot_heartbeat(msg):
+            return NOTHING
+        self._last_heartbeat_s = now_s
+        self._armed = bool(int(msg.base_mode) & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        return Reaction(consumed=False, out=tuple(self._advance(now_s, force_output=False)))
+
+    def _on_attitude(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if (msg.get_srcSystem() != self.identity.vehicle_system_id
+                or msg.get_srcComponent() != self.identity.autopilot_component_id):
+            return
+        yaw = float(msg.yaw)
+        if not math.isfinite(yaw):
+            self._count("attitude.non_finite")
+            return
+        self._yaw_cw_rad, self._yaw_s = yaw, now_s
+
+    def _on_command_ack(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
+        if self.outputs.mode != "servo" or int(msg.command) != mavlink.MAV_CMD_DO_SET_SERVO:
+            return NOTHING
+        # MAVLink 1 acks carry no target (0): take them as ours, we are the one sending DO_SET_SERVO.
+        if (int(getattr(msg, "target_system", 0)) not in (0, self.identity.override_source_system)
+                or int(getattr(msg, "target_component", 0)) not in (0, self.identity.component_id)):
+            return NOTHING
+        result = int(msg.result)
+        if result in _ACK_OK:
+            self._count("servo.accepted")
+            return Reaction(consumed=True)
+        self._count("servo.refused")
+        self._refused = True
+        self._drop_request()
+        out = self.reporter.statustext(mavlink.MAV_SEVERITY_ERROR, f"RB: DO_SET_SERVO result {result}", now_s,
+                                       key="servo.refused")
+        out += self._advance(now_s, force_output=False)
+        return Reaction(consumed=True, out=tuple(out))
+
+    def _addressed(self, msg: MAVLinkMessage, vehicle: int) -> bool:
+        if msg.get_type() == "MANUAL_CONTROL":  # no component field
+            return int(msg.target) == vehicle
+        return (int(msg.target_system) == vehicle
+                and int(msg.target_component) in self.profile.command.accept_target_components)
+
+    def _on_request(self, inc: Incoming, now_s: float) -> Reaction:
+        msg = inc.msg
+        vehicle = self.identity.vehicle_system_id
+        if vehicle is None:
+            self._count("forwarded.vehicle_unknown")
+            return NOTHING
+        if not self._addressed(msg, vehicle):
+            self._count("forwarded.not_for_vehicle")
+            return NOTHING
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        if not self._authorised(inc):
+            return self._reject(UNAUTHORISED, source, now_s)
+        decoded = decode_request(msg, self.profile.command)
+        if isinstance(decoded, Rejected):
+            return self._reject(decoded.reason, source, now_s)
+        out = self._advance(now_s, force_output=False)  # bring link / armed / timeout state up to date
+        if self.state in (State.WAITING, State.LINK_LOST):
+            self._count("dropped.link_lost")
+            return Reaction(consumed=True, out=tuple(out))
+        if self.state is State.DISARMED:
+            self._count("dropped.disarmed")
+            return Reaction(consumed=True, out=tuple(out))
+        request: Request = decoded
+        if isinstance(decoded, HeadingVelocity):
+            yaw = self._fresh_yaw(now_s)
+            if yaw is None:
+                reaction = self._reject(NO_ATTITUDE, source, now_s)
+                return Reaction(consumed=True, out=(*out, *reaction.out))
+            request = decoded.absolute(yaw)
+        for note in decoded.notes:
+            self._count(f"note.{note}")
+            out += self._say_once(f"note.{note}", f"RB: {note} ({source[0]}:{source[1]})", source, now_s)
+        self._count("requests.accepted")
+        self.request, self._request_s, self._refused = request, now_s, False
+        out += self._advance(now_s, force_output=True)
+        return Reaction(consumed=True, out=tuple(out))
+
+    def _reject(self, reason: str, source: tuple[int, int], now_s: float) -> Reaction:
+        self._count(f"rejected.{reason}")
+        text = f"RB: rejected {reason} from {source[0]}:{source[1]}"
+        out = self._say_once(f"rejected.{reason}", text, source, now_s)
+        return Reaction(consumed=True, out=tuple(out))
+
+    # ----------------------------------------------------------------- state and outputs
+
+    def _advance(self, now_s: float, force_output: bool) -> list[Outgoing]:
+        """Update the state for `now_s`; send outputs if forced, due to a state change, or braking done."""
+        before = self.state
+        out = self._set_state(self._evaluate(now_s), now_s)
+        if self.identity.vehicle_system_id is not None and (force_output or self.state is not before):
+            out += self._output(now_s)
+        return out
+
+    def _evaluate(self, now_s: float) -> State:
+        if self._last_heartbeat_s is None:
+            return State.WAITING
+        if now_s - self._last_heartbeat_s >= self.profile.safety.heartbeat_timeout_s:
+            self._drop_request()
+            return State.LINK_LOST
+        if self.profile.safety.require_armed and not self._armed:
+            self._drop_request()
+            return State.DISARMED
+        if self.request is None or self._request_s is None:
+            return State.REFUSED if self._refused else State.IDLE
+        if now_s - self._request_s >= self.profile.command.setpoint_timeout_s or self._target(now_s) is None:
+            return State.BRAKING
+        return State.ACTIVE
+
+    def _target(self, now_s: float) -> Twist2D | None:
+        """The twist the current request asks for now; None if it cannot be followed (no fresh yaw)."""
+        request = self.request
+        if isinstance(request, BodyVelocity):
+            return request.twist()
+        if isinstance(request, HeadingVelocity):
+            yaw = self._fresh_yaw(now_s)
+            if yaw is None:
+                return None
+            kp_1_s, max_rad_s = self.profile.command.heading_kp_1_s, self.profile.limits.max_angular_rad_s
+            return request.twist(yaw, kp_1_s, max_rad_s)
+        return None
+
+    def _fresh_yaw(self, now_s: float) -> float | None:
+        if self._yaw_s is None or now_s - self._yaw_s >= self.profile.safety.attitude_timeout_s:
+            return None
+        return self._yaw_cw_rad
+
+    def _output(self, now_s: float) -> list[Outgoing]:
+        vehicle = self.identity.vehicle_system_id
+        if vehicle is None:
+            return []
+        target = self._target(now_s) if self.state is State.ACTIVE else None
+        last = self._last_output_s
+        dt_s = self.period_s if last is None else min(self.period_s, now_s - last)
+        if self.state in _DRIVING:
+            if dt_s > 0.0:
+                self.limiter.step(target if target is not None else Twist2D(), dt_s)
+        else:
+            self.limiter.reset(Twist2D())
+        wheels = self.drive.to_wheel_speeds(self.limiter.current)
+        wheels = wheels.desaturate(self.profile.robot.max_wheel_rad_s)
+        pwm = self.outputs.to_pwm(wheels) if self.state in _DRIVING else self.outputs.neutral
+        msgs = self.outputs.command(pwm, vehicle, self.identity.autopilot_component_id)
+        self.last_wheel_pwm = pwm
+        self._last_output_s = now_s
+        self._next_output_s = now_s + self.period_s
+        self._count("outputs.sent")
+        out = [self._to_autopilot(m) for m in msgs]
+        if self.state is State.BRAKING and self.limiter.current == Twist2D():
+            # Stopped: the neutral just built is the last braking output; from now on IDLE.
+            self._drop_request()
+            out += self._set_state(self._evaluate(now_s), now_s)
+        return out
+
+    def _drop_request(self) -> None:
+        self.request, self._request_s = None, None
+        self.limiter.reset(Twist2D())
+
+    def _set_state(self, new: State, now_s: float) -> list[Outgoing]:
+        if new is self.state:
+            return []
+        old, self.state = self.state, new
+        self._count(f"state.{new.value}")
+        log.info("command state %s -> %s", old.value, new.value)
+        severity, text = STATE_TEXT[new]
+        return self.reporter.statustext(severity, text, now_s, key=f"state.{new.value}")
+
+    def _to_autopilot(self, msg: MAVLinkMessage) -> Outgoing:
+        # ArduPilot obeys overrides only from its GCS id (MAV_GCS_SYSID): see output.override_source_system.
+        return Outgoing(Link.AUTOPILOT, msg, self.identity.override_source_system, self.identity.component_id)
+
+    def _say_once(self, key: str, text: str, source: tuple[int, int], now_s: float) -> list[Outgoing]:
+        """Report `text` once per (key, source); later occurrences are only counted."""
+        if (key, *source) in self._said:
+            return []
+        self._said.add((key, *source))
+        return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, text, now_s, key=key)
+
+    def _count(self, name: str) -> None:
+        self.counters[name] = self.counters.get(name, 0) + 1

@@ -1,0 +1,121 @@
+"""Wheel speeds -> per-wheel PWM -> RC_CHANNELS_OVERRIDE or DO_SET_SERVO messages (pure).
+
+PWM is linear in wheel speed: pwm_trim at 0, pwm_max at +max_wheel_rad_s, pwm_min at
+-max_wheel_rad_s (the two halves may have different slopes when trim is off-centre), a
+reversed motor mirrors the speed first, and the result is a whole number of microseconds
+clamped to [pwm_min, pwm_max].
+
+RC_CHANNELS_OVERRIDE values (MAVLink common.xml): on ch1-8, 65535 (UINT16_MAX) leaves a
+channel alone and 0 releases it to the RC radio; on ch9-18, 0 or 65535 leaves it alone and
+65534 (UINT16_MAX - 1) releases it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from rover_bridge.kinematics import WheelSpeeds
+from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.params import Profile
+
+RC_CHANNELS = 18
+IGNORE_CH1_8 = 65535
+IGNORE_CH9_18 = 0
+RELEASE_CH1_8 = 0
+RELEASE_CH9_18 = 65534
+
+
+@dataclass(frozen=True, slots=True)
+class WheelPwm:
+    """Pulse widths sent to the left and right motor outputs."""
+
+    left_us: int
+    right_us: int
+
+
+def _ignore_value(channel: int) -> int:
+    return IGNORE_CH1_8 if channel <= 8 else IGNORE_CH9_18
+
+
+def _release_value(channel: int) -> int:
+    return RELEASE_CH1_8 if channel <= 8 else RELEASE_CH9_18
+
+
+@dataclass(frozen=True, slots=True)
+class OutputMap:
+    """The profile's output section plus the wheel speed that means full PWM."""
+
+    mode: str
+    left_channel: int
+    right_channel: int
+    pwm_min: int
+    pwm_trim: int
+    pwm_max: int
+    max_wheel_rad_s: float
+    left_reversed: bool = False
+    right_reversed: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("rc_override", "servo"):
+            raise ValueError(f"mode must be rc_override or servo, got {self.mode!r}")
+        if not self.pwm_min < self.pwm_trim < self.pwm_max:
+            raise ValueError("expected pwm_min < pwm_trim < pwm_max")
+        if self.left_channel == self.right_channel or not (
+                1 <= self.left_channel <= RC_CHANNELS and 1 <= self.right_channel <= RC_CHANNELS):
+            raise ValueError("left_channel and right_channel must be distinct channels in 1..18")
+        if not (math.isfinite(self.max_wheel_rad_s) and self.max_wheel_rad_s > 0):
+            raise ValueError("max_wheel_rad_s must be a finite number > 0")
+
+    @classmethod
+    def from_profile(cls, profile: Profile) -> OutputMap:
+        o = profile.output
+        return cls(mode=o.mode, left_channel=o.left_channel, right_channel=o.right_channel, pwm_min=o.pwm_min,
+                   pwm_trim=o.pwm_trim, pwm_max=o.pwm_max, max_wheel_rad_s=profile.robot.max_wheel_rad_s,
+                   left_reversed=o.left_reversed, right_reversed=o.right_reversed)
+
+    @property
+    def neutral(self) -> WheelPwm:
+        return WheelPwm(self.pwm_trim, self.pwm_trim)
+
+    def wheel_pwm_us(self, rad_s: float, reversed_: bool) -> int:
+        """One wheel's speed (forward +) -> its PWM."""
+        if not math.isfinite(rad_s):
+            raise ValueError(f"wheel speed must be finite, got {rad_s!r}")
+        fraction = max(-1.0, min(1.0, rad_s / self.max_wheel_rad_s))
+        if reversed_:
+            fraction = -fraction
+        span = self.pwm_max - self.pwm_trim if fraction >= 0 else self.pwm_trim - self.pwm_min
+        pwm = round(self.pwm_trim + fraction * span)
+        return max(self.pwm_min, min(self.pwm_max, pwm))
+
+    def to_pwm(self, wheels: WheelSpeeds) -> WheelPwm:
+        return WheelPwm(self.wheel_pwm_us(wheels.left_rad_s, self.left_reversed),
+                        self.wheel_pwm_us(wheels.right_rad_s, self.right_reversed))
+
+    def command(self, pwm: WheelPwm, target_system: int, target_component: int) -> list[MAVLinkMessage]:
+        """The messages that set both wheels to `pwm` in the configured mode."""
+        if self.mode == "servo":
+            return [servo_command(self.left_channel, pwm.left_us, target_system, target_component),
+                    servo_command(self.right_channel, pwm.right_us, target_system, target_component)]
+        values = {self.left_channel: pwm.left_us, self.right_channel: pwm.right_us}
+        return [rc_override(values, target_system, target_component)]
+
+    def release(self, target_system: int, target_component: int) -> list[MAVLinkMessage]:
+        """Hand the two channels back to the RC radio (rc_override); servo mode has no release: trim."""
+        if self.mode == "servo":
+            return self.command(self.neutral, target_system, target_component)
+        values = {ch: _release_value(ch) for ch in (self.left_channel, self.right_channel)}
+        return [rc_override(values, target_system, target_component)]
+
+
+def rc_override(values: dict[int, int], target_system: int, target_component: int) -> MAVLinkMessage:
+    """RC_CHANNELS_OVERRIDE setting the channels in `values` (1-based) and leaving all others alone."""
+    chans = [values.get(ch, _ignore_value(ch)) for ch in range(1, RC_CHANNELS + 1)]
+    return mavlink.MAVLink_rc_channels_override_message(target_system, target_component, *chans)
+
+
+def servo_command(servo: int, pwm_us: int, target_system: int, target_component: int) -> MAVLinkMessage:
+    """COMMAND_LONG MAV_CMD_DO_SET_SERVO: param1 = output number, param2 = PWM (us)."""
+    return mavlink.MAVLink_command_long_message(target_system, target_component, mavlink.MAV_CMD_DO_SET_SERVO,
+                                                0, float(servo), float(pwm_us), 0.0, 0.0, 0.0, 0.0, 0.0)
