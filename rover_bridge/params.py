@@ -139,6 +139,9 @@ class SafetyParams:
     heartbeat_timeout_s: float = _p(3.0, "Autopilot heartbeat silent this long: stop commanding; resume only on a "
                                     "fresh request.", unit="s", lo=0.5, hi=60.0)
     require_armed: bool = _p(True, "Drive only while the autopilot reports armed; otherwise hold neutral.")
+    attitude_timeout_s: float = _p(1.0, "Earth-frame (heading) requests need an ATTITUDE yaw younger than "
+                                   "this; a stale yaw brakes the rover like a request timeout.",
+                                   unit="s", lo=0.05, hi=10.0)
 
 
 @dataclass(frozen=True, slots=True)
