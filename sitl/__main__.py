@@ -1,0 +1,7 @@
+"""``python -m sitl``."""
+
+import sys
+
+from sitl.cli import main
+
+sys.exit(main())
