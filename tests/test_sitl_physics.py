@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -89,7 +90,7 @@ def test_encoder_quantisation_steps_match_resolution() -> None:
     assert len(steps) > 10
     for d in steps:
         assert d / resolution_m == pytest.approx(round(d / resolution_m), abs=1e-9)
-    gaps = {round((b - a) / resolution_m) for a, b in zip(steps, steps[1:], strict=False)}
+    gaps = {round((b - a) / resolution_m) for a, b in itertools.pairwise(steps)}
     assert min(gaps) == 1  # single-count steps are visible at this speed
     # Quantised reading never exceeds the true rotation and lags it by less than one count.
     true_m = emu.physics_state.left_encoder_angle_rad * 0.05
@@ -115,8 +116,9 @@ def test_one_wheel_slipping_turns_the_body() -> None:
 
 
 def test_calibration_error_encoders_use_nominal_radius() -> None:
-    vehicle = VehicleConfig(true_left_radius_m=0.055, true_right_radius_m=0.055, start_armed=True,
-                            gyro_noise_rad_s=0.0)
+    vehicle = VehicleConfig(
+        true_left_radius_m=0.055, true_right_radius_m=0.055, start_armed=True, gyro_noise_rad_s=0.0
+    )
     emu = Emulator(vehicle=vehicle)
     emu.set_radio(1, 2000)
     emu.set_radio(3, 2000)

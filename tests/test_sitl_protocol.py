@@ -304,8 +304,24 @@ def test_shorter_override_time_parameter_takes_effect(armed_rig: Rig) -> None:
 
 def test_odometry_is_kept_for_inspection(rig: Rig) -> None:
     rig.gcs.mav.odometry_send(
-        123, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, 1.25, -0.5, 0.0, [1, 0, 0, 0],
-        0.3, 0.0, 0.0, 0.0, 0.0, 0.1, [float("nan")] * 21, [float("nan")] * 21, 0, 0, 0,
+        123,
+        mavlink.MAV_FRAME_LOCAL_FRD,
+        mavlink.MAV_FRAME_BODY_FRD,
+        1.25,
+        -0.5,
+        0.0,
+        [1, 0, 0, 0],
+        0.3,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.1,
+        [float("nan")] * 21,
+        [float("nan")] * 21,
+        0,
+        0,
+        0,
     )
     rig.run(0.02)
     assert len(rig.emu.received_odometry) == 1
