@@ -48,16 +48,20 @@ def _p(default: Any, help: str, *, unit: str = "", lo: float | None = None, hi: 
 
 @dataclass(frozen=True, slots=True)
 class RobotParams:
-    wheel_radius_m: float = _p(0.05, "Nominal wheel radius, used for both wheels unless a per-wheel radius is given.",
-                               unit="m", lo=0.0, lo_open=True, hi=2.0)
-    track_width_m: float = _p(0.30, "Wheel separation: centre of the left contact patch to centre of the right.",
-                              unit="m", lo=0.0, lo_open=True, hi=10.0)
-    left_wheel_radius_m: float | None = _p(None, "Left wheel radius when it differs from wheel_radius_m (calibration).",
-                                           unit="m", lo=0.0, lo_open=True, hi=2.0)
+    wheel_radius_m: float = _p(
+        0.05, "Nominal wheel radius, used for both wheels unless a per-wheel radius is given.",
+        unit="m", lo=0.0, lo_open=True, hi=2.0)
+    track_width_m: float = _p(
+        0.30, "Wheel separation: centre of the left contact patch to centre of the right.",
+        unit="m", lo=0.0, lo_open=True, hi=10.0)
+    left_wheel_radius_m: float | None = _p(
+        None, "Left wheel radius when it differs from wheel_radius_m (calibration).",
+        unit="m", lo=0.0, lo_open=True, hi=2.0)
     right_wheel_radius_m: float | None = _p(None, "Right wheel radius when it differs from wheel_radius_m.",
                                             unit="m", lo=0.0, lo_open=True, hi=2.0)
-    max_wheel_rpm: float = _p(200.0, "Wheel speed at full PWM; wheel commands are desaturated to it, keeping curvature.",
-                              unit="rpm", lo=0.0, lo_open=True, hi=20000.0)
+    max_wheel_rpm: float = _p(
+        200.0, "Wheel speed at full PWM; wheel commands are desaturated to it, keeping curvature.",
+        unit="rpm", lo=0.0, lo_open=True, hi=20000.0)
 
     @property
     def left_radius_m(self) -> float:
@@ -84,35 +88,42 @@ class LimitsParams:
                                       unit="m/s^2", lo=0.0, lo_open=True, hi=100.0)
     max_angular_accel_rad_s2: float = _p(6.0, "Largest rate of change of the yaw rate.",
                                          unit="rad/s^2", lo=0.0, lo_open=True, hi=500.0)
-    max_linear_jerk_m_s3: float | None = _p(None, "Optional jerk limit on v; unset means acceleration may step.",
-                                            unit="m/s^3", lo=0.0, lo_open=True, hi=10000.0)
+    max_linear_jerk_m_s3: float | None = _p(
+        None, "Optional jerk limit on v; unset means acceleration may step.",
+        unit="m/s^3", lo=0.0, lo_open=True, hi=10000.0)
     max_angular_jerk_rad_s3: float | None = _p(None, "Optional jerk limit on omega; unset means it may step.",
                                                unit="rad/s^3", lo=0.0, lo_open=True, hi=10000.0)
 
 
 @dataclass(frozen=True, slots=True)
 class CommandParams:
-    setpoint_timeout_s: float = _p(0.5, "With no valid request for this long, brake to a stop through the limiter.",
-                                   unit="s", lo=0.05, hi=10.0)
-    rate_hz: float = _p(20.0, "How often wheel outputs are refreshed (well inside the autopilot's override timeout).",
-                        unit="Hz", lo=2.0, hi=200.0)
+    setpoint_timeout_s: float = _p(
+        0.5, "With no valid request for this long, brake to a stop through the limiter.",
+        unit="s", lo=0.05, hi=10.0)
+    rate_hz: float = _p(
+        20.0, "How often wheel outputs are refreshed (well inside the autopilot's override timeout).",
+        unit="Hz", lo=2.0, hi=200.0)
     manual_linear_scale_m_s: float = _p(0.5, "MANUAL_CONTROL x = 1000 maps to this forward speed.",
                                         unit="m/s", lo=0.0, lo_open=True, hi=50.0)
-    manual_angular_scale_rad_s: float = _p(1.5, "MANUAL_CONTROL r = 1000 maps to this yaw rate (a right turn).",
-                                           unit="rad/s", lo=0.0, lo_open=True, hi=50.0)
+    manual_angular_scale_rad_s: float = _p(
+        1.5, "MANUAL_CONTROL r = 1000 maps to this yaw rate (a right turn).",
+        unit="rad/s", lo=0.0, lo_open=True, hi=50.0)
     heading_kp_1_s: float = _p(2.0, "Earth-frame requests: commanded yaw rate per radian of heading error.",
                                unit="1/s", lo=0.0, lo_open=True, hi=50.0)
     accept_target_components: tuple[int, ...] = _p(
-        (0, 1, 191), "Velocity requests addressed to one of these component ids (of the vehicle) are consumed.",
+        (0, 1, 191),
+        "Velocity requests addressed to one of these component ids (of the vehicle) are consumed.",
         lo=0, hi=255)
 
 
 @dataclass(frozen=True, slots=True)
 class OutputParams:
-    mode: str = _p("rc_override", "How wheels are driven: RC_CHANNELS_OVERRIDE (times out safely) or DO_SET_SERVO "
-                   "(held by ArduPilot with no timeout).", choices=("rc_override", "servo"))
-    left_channel: int = _p(1, "RC input channel (rc_override) or servo output (servo) that drives the left wheel.",
-                           lo=1, hi=16)
+    mode: str = _p(
+        "rc_override", "How wheels are driven: RC_CHANNELS_OVERRIDE (times out safely) or DO_SET_SERVO "
+        "(held by ArduPilot with no timeout).", choices=("rc_override", "servo"))
+    left_channel: int = _p(
+        1, "RC input channel (rc_override) or servo output (servo) that drives the left wheel.",
+        lo=1, hi=16)
     right_channel: int = _p(3, "RC input channel (rc_override) or servo output (servo) for the right wheel.",
                             lo=1, hi=16)
     pwm_min: int = _p(1000, "PWM for full reverse.", unit="us", lo=500, hi=2500)
@@ -121,14 +132,15 @@ class OutputParams:
     left_reversed: bool = _p(False, "Left motor is mounted so that pwm_max drives it backwards.")
     right_reversed: bool = _p(False, "Right motor is mounted so that pwm_max drives it backwards.")
     override_source_system: int = _p(
-        255, "System id the overrides are sent from: ArduPilot obeys RC_CHANNELS_OVERRIDE only from MAV_GCS_SYSID "
-        "(default 255) and silently ignores every other sender.", lo=1, hi=255)
+        255, "System id the overrides are sent from: ArduPilot obeys RC_CHANNELS_OVERRIDE only from "
+        "MAV_GCS_SYSID (default 255) and silently ignores every other sender.", lo=1, hi=255)
 
 
 @dataclass(frozen=True, slots=True)
 class EncoderParams:
-    left_index: int = _p(0, "Index of the left wheel in WHEEL_DISTANCE.distance (depends on the WENC parameters).",
-                         lo=0, hi=15)
+    left_index: int = _p(
+        0, "Index of the left wheel in WHEEL_DISTANCE.distance (depends on the WENC parameters).",
+        lo=0, hi=15)
     right_index: int = _p(1, "Index of the right wheel in WHEEL_DISTANCE.distance.", lo=0, hi=15)
     left_reversed: bool = _p(False, "Left encoder counts down when the wheel drives forward.")
     right_reversed: bool = _p(False, "Right encoder counts down when the wheel drives forward.")
@@ -136,8 +148,9 @@ class EncoderParams:
 
 @dataclass(frozen=True, slots=True)
 class SafetyParams:
-    heartbeat_timeout_s: float = _p(3.0, "Autopilot heartbeat silent this long: stop commanding; resume only on a "
-                                    "fresh request.", unit="s", lo=0.5, hi=60.0)
+    heartbeat_timeout_s: float = _p(
+        3.0, "Autopilot heartbeat silent this long: stop commanding; resume only on a "
+        "fresh request.", unit="s", lo=0.5, hi=60.0)
     require_armed: bool = _p(True, "Drive only while the autopilot reports armed; otherwise hold neutral.")
     attitude_timeout_s: float = _p(1.0, "Earth-frame (heading) requests need an ATTITUDE yaw younger than "
                                    "this; a stale yaw brakes the rover like a request timeout.",
@@ -153,24 +166,41 @@ class MavlinkParams:
 
 @dataclass(frozen=True, slots=True)
 class EstimatorParams:
-    gyro_source: str = _p("auto", "Where the yaw rate comes from; auto takes the first of ATTITUDE, SCALED_IMU, "
-                          "RAW_IMU that arrives.", choices=("auto", "attitude", "raw_imu", "scaled_imu"))
+    gyro_source: str = _p(
+        "auto", "Where the yaw rate comes from; auto takes the first of ATTITUDE, SCALED_IMU, "
+        "RAW_IMU that arrives.", choices=("auto", "attitude", "raw_imu", "scaled_imu"))
     calibrate: bool = _p(False, "Estimate effective track width and left/right radius ratio online.")
     stream_rate_hz: float = _p(20.0, "Rate requested from the autopilot for WHEEL_DISTANCE and the gyro.",
                                unit="Hz", lo=1.0, hi=200.0)
+    gyro_noise_rad_s: float = _p(0.005, "Gyro yaw-rate noise per sample (1 sigma).", unit="rad/s",
+                                 lo=0.0, lo_open=True, hi=1.0)
+    wheel_noise_m: float = _p(0.0005, "Noise of one WHEEL_DISTANCE reading (encoder resolution, 1 sigma).",
+                              unit="m", lo=0.0, lo_open=True, hi=0.1)
+    wheel_noise_fraction: float = _p(
+        0.02, "Wheel speed noise as a fraction of the speed (geometry error, small slip; 1 sigma).",
+        lo=0.0, lo_open=True, hi=1.0)
+    gate_sigma: float = _p(
+        4.0, "Mahalanobis gate per sensor, in standard deviations; also the wheel/gyro yaw-rate "
+        "disagreement that counts as wheel slip.", lo=1.0, hi=100.0)
 
 
 @dataclass(frozen=True, slots=True)
 class OdometryParams:
     rate_hz: float = _p(30.0, "How often ODOMETRY is published.", unit="Hz", lo=0.5, hi=200.0)
-    targets: str = _p("gcs", "Where ODOMETRY goes: the ground stations, the autopilot (external navigation), both, "
-                      "or nowhere.", choices=("gcs", "autopilot", "both", "none"))
+    targets: str = _p(
+        "gcs", "Where ODOMETRY goes: the ground stations, the autopilot (external navigation), both, "
+        "or nowhere.", choices=("gcs", "autopilot", "both", "none"))
+    unobserved_variance: float = _p(
+        1e4, "Variance published for the axes the estimator does not observe (z, roll, pitch and their "
+        "rates). ArduPilot folds z into its position error and roll/pitch into its angle error: "
+        "lower it (e.g. 0.01) when feeding ArduPilot.", unit="m^2 | rad^2", lo=0.0, lo_open=True, hi=1e12)
 
 
 @dataclass(frozen=True, slots=True)
 class SecurityParams:
-    require_signed_commands: bool = _p(False, "Accept velocity requests and commands only when MAVLink 2 signed "
-                                       "with the key in key_file.")
+    require_signed_commands: bool = _p(
+        False, "Accept velocity requests and commands only when MAVLink 2 signed "
+        "with the key in key_file.")
     key_file: str = _p("", "File holding the 32-byte signing secret (hex or raw); must not be group/world "
                        "readable.")
     allowed_sources: tuple[str, ...] = _p(
@@ -246,7 +276,10 @@ def iter_params() -> Iterator[ParamInfo]:
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             type_name, optional = _base_type(hints[f.name])
-            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+            if f.default is not dataclasses.MISSING:
+                default: Any = f.default
+            else:
+                default = f.default_factory()  # type: ignore[operator]
             yield ParamInfo(sec_field.name, f.name, type_name, optional, default, f.metadata["spec"])
 
 
@@ -310,26 +343,37 @@ def _check_scalar(where: str, t: str, spec: Spec, value: Any) -> tuple[Any, list
     return value, []
 
 
-def _cross_checks(p: Profile) -> list[str]:
+def _cross_checks(p: Profile, bad: frozenset[str] = frozenset()) -> list[str]:
+    """Relations between keys. A check is skipped when one of its keys was itself invalid (`bad`):
+    it would otherwise run on the default standing in for that key and report a confusing problem."""
+
+    def checkable(*paths: str) -> bool:
+        return not bad.intersection(paths)
+
     problems = []
     o = p.output
-    if not o.pwm_min < o.pwm_trim < o.pwm_max:
+    pwm_keys = ("output.pwm_min", "output.pwm_trim", "output.pwm_max")
+    if checkable(*pwm_keys) and not o.pwm_min < o.pwm_trim < o.pwm_max:
         problems.append(f"output: expected pwm_min < pwm_trim < pwm_max, got {o.pwm_min} / {o.pwm_trim} / "
                         f"{o.pwm_max}")
-    if o.left_channel == o.right_channel:
-        problems.append(f"output: left_channel and right_channel are both {o.left_channel}; each wheel needs its own")
+    if checkable("output.left_channel", "output.right_channel") and o.left_channel == o.right_channel:
+        problems.append(f"output: left_channel and right_channel are both {o.left_channel}; "
+                        "each wheel needs its own")
     e = p.encoders
-    if e.left_index == e.right_index:
+    if checkable("encoders.left_index", "encoders.right_index") and e.left_index == e.right_index:
         problems.append(f"encoders: left_index and right_index are both {e.left_index}")
-    if 1000.0 / p.command.rate_hz >= 1000.0 * p.safety.heartbeat_timeout_s:
+    if (checkable("command.rate_hz", "safety.heartbeat_timeout_s")
+            and 1.0 / p.command.rate_hz >= p.safety.heartbeat_timeout_s):
         problems.append("command.rate_hz: outputs must refresh faster than safety.heartbeat_timeout_s")
     for i, src in enumerate(p.security.allowed_sources):
         parts = src.split(":")
         ok = len(parts) == 2 and parts[0].isdigit() and 0 < int(parts[0]) <= 255 and (
             parts[1] == "*" or (parts[1].isdigit() and int(parts[1]) <= 255))
         if not ok:
-            problems.append(f"security.allowed_sources[{i}]: expected 'sysid:compid' or 'sysid:*', got {src!r}")
-    if p.security.require_signed_commands and not p.security.key_file:
+            problems.append(f"security.allowed_sources[{i}]: expected 'sysid:compid' or 'sysid:*', "
+                            f"got {src!r}")
+    if (checkable("security.require_signed_commands", "security.key_file")
+            and p.security.require_signed_commands and not p.security.key_file):
         problems.append("security: require_signed_commands = true needs key_file")
     return problems
 
@@ -337,9 +381,10 @@ def _cross_checks(p: Profile) -> list[str]:
 def profile_from_dict(data: Mapping[str, Any], source: str = "<profile>") -> Profile:
     """Validate a parsed TOML document; raise ConfigError listing every problem (prefixed by `source`)."""
     problems: list[str] = []
+    bad: set[str] = set()  # key paths whose value was rejected
     by_section: dict[str, dict[str, ParamInfo]] = {}
-    for info in iter_params():
-        by_section.setdefault(info.section, {})[info.name] = info
+    for declared in iter_params():
+        by_section.setdefault(declared.section, {})[declared.name] = declared
     sections: dict[str, Any] = {}
     for sec_name, table in data.items():
         if sec_name not in by_section:
@@ -360,14 +405,16 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "<profile>") -> Pro
                 continue
             conv, errs = _check_value(info, value)
             problems += errs
-            if not errs:
+            if errs:
+                bad.add(info.path)
+            else:
                 values[key] = conv
         sections[sec_name] = values
     # Cross-field checks run on the values that were valid, so one run reports everything.
     profile = Profile()
     built = {name: dataclasses.replace(getattr(profile, name), **vals) for name, vals in sections.items()}
     profile = dataclasses.replace(profile, **built)
-    problems += _cross_checks(profile)
+    problems += _cross_checks(profile, frozenset(bad))
     if problems:
         raise ConfigError([f"{source}: {p}" for p in problems])
     return profile
@@ -402,7 +449,8 @@ def profile_to_toml(profile: Profile) -> str:
         if value is None:
             lines.append(f"# {info.name} = (unset){unit}")
         else:
-            lines.append(f"{info.name} = {_toml_value(value)}{'  # ' + info.spec.unit if info.spec.unit else ''}")
+            comment = f"  # {info.spec.unit}" if info.spec.unit else ""
+            lines.append(f"{info.name} = {_toml_value(value)}{comment}")
     return "\n".join(lines) + "\n"
 
 
