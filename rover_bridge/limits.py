@@ -11,6 +11,10 @@ Each axis (forward speed v, yaw rate omega) is limited on its own:
   that it has run down to zero by the time the target is reached;
 - the target is reached exactly (no chattering around it) and never passed.
 
+With a jerk limit and decel > accel, a braking rate carried through zero is ramped down to
+the accel limit at the jerk rate rather than cut, so for a moment after a sign change |v|
+can grow faster than accel (never faster than decel): the jerk limit wins there.
+
 "Never passed" is enforced last, as a clamp on every path. ros_controllers #561: the
 jerk-limited speed limiter of diff_drive_controller let v overshoot through zero on a
 stop command, so a "stop" briefly drove the robot backwards. Here, when a step would
@@ -74,6 +78,11 @@ def _clamp(x: float, lo: float, hi: float) -> float:
     return lo if x < lo else hi if x > hi else x
 
 
+# Relative slack when deciding "this step reaches the target": without it, rounding in
+# repeated subtraction leaves a residue like 5e-17 and costs one more step to land.
+_LAND_REL = 1e-12
+
+
 def _step_rate(x: float, target: float, dt_s: float, lim: _AxisLimits) -> float:
     """One step without a jerk limit: piecewise exact (decelerate part of the step, accelerate the rest)."""
     remaining_s = dt_s
@@ -81,15 +90,15 @@ def _step_rate(x: float, target: float, dt_s: float, lim: _AxisLimits) -> float:
         # Shrinking |x|: toward the target if it is on the same side, else toward zero first.
         goal = target if (target > 0.0) == (x > 0.0) and target != 0.0 else 0.0
         gap = abs(goal - x)
-        if lim.decel * remaining_s < gap:
+        if lim.decel * remaining_s < gap * (1.0 - _LAND_REL):
             return x + math.copysign(lim.decel * remaining_s, goal - x)
-        remaining_s -= gap / lim.decel
+        remaining_s = max(0.0, remaining_s - gap / lim.decel)
         x = goal
         if x == target:
             return target
     # Growing |x| (from zero or on the target's side) toward the target.
     gap = abs(target - x)
-    if lim.accel * remaining_s >= gap:
+    if lim.accel * remaining_s >= gap * (1.0 - _LAND_REL):
         return target  # land exactly: no chattering around the target
     return x + math.copysign(lim.accel * remaining_s, target - x)
 
@@ -103,11 +112,12 @@ def _step_jerk(x: float, a: float, target: float, dt_s: float, lim: _AxisLimits,
     # Largest rate from which the rate can still run down to zero (at `jerk`) before the target.
     a_des = math.copysign(min(a_lim, math.sqrt(2.0 * jerk * abs(err))), err)
     a_new = a + _clamp(a_des - a, -jerk * dt_s, jerk * dt_s)
-    # The acceleration bound belongs to the direction the new rate pushes |x|.
-    new_lim = lim.accel if (x == 0.0 or (a_new > 0.0) == (x > 0.0)) else lim.decel
-    a_new = _clamp(a_new, -new_lim, new_lim)
+    # a_des respects accel/decel; a rate left over from the other regime (braking at a decel
+    # larger than accel, then crossing zero) is ramped down at `jerk`, not cut, so the jerk
+    # limit holds; meanwhile |a| stays within max(accel, decel).
+    a_new = _clamp(a_new, -max(lim.accel, lim.decel), max(lim.accel, lim.decel))
     x_new = x + 0.5 * (a + a_new) * dt_s  # exact for a rate that changes linearly over the step
-    if (target - x_new) * err <= 0.0:
+    if (target - x_new) * err <= _LAND_REL * abs(err):
         return target, 0.0  # would reach or pass the target: land on it (the #561 guard)
     if abs(x_new) >= lim.max:
         return math.copysign(lim.max, x_new), 0.0
@@ -176,7 +186,11 @@ class TwistLimiter:
         return self._current
 
     def time_to_stop_s(self) -> float:
-        """Upper bound (continuous time) of the time to reach a zero twist from the current state."""
+        """Upper bound of the time to reach a zero twist from the current state, in continuous time.
+
+        Stepping at dt_s, zero is reached in the step that crosses this time (no jerk limit) or,
+        jerk-limited, at most two steps later (the rate lags its braking curve by one step).
+        """
         return max(_stop_time_s(self._current.v_m_s, self._accel[0], self._v),
                    _stop_time_s(self._current.omega_rad_s, self._accel[1], self._w))
 
