@@ -32,6 +32,8 @@ type = "link_silence"    # nothing in either direction (a cable pulled)
 start_s = 6.0
 end_s = 7.0
 ```
+
+``kind`` is accepted for ``type``, and ``duration_s`` for ``end_s`` (end = start + duration).
 """
 
 from __future__ import annotations
@@ -125,8 +127,9 @@ class Scenario:
         dropouts: list[EncoderDropout] = []
         reboots: list[RebootEvent] = []
         silences: list[LinkSilence] = []
-        for i, ev in enumerate(events):
+        for i, raw in enumerate(events):
             where = f"event[{i}]"
+            ev = _normalise(raw)
             try:
                 kind = ev.get("type")
                 args = {k: v for k, v in ev.items() if k != "type"}
@@ -150,6 +153,18 @@ class Scenario:
         if problems:
             raise ConfigError(source, problems)
         return cls(tuple(slips), tuple(patches), tuple(dropouts), tuple(reboots), tuple(silences))
+
+
+def _normalise(raw: Mapping[str, Any]) -> dict[str, Any]:
+    """Accept the aliases ``kind`` (for type) and ``duration_s`` (for end_s)."""
+    ev = dict(raw)
+    if "kind" in ev and "type" not in ev:
+        ev["type"] = ev.pop("kind")
+    if "duration_s" in ev and "end_s" not in ev:
+        start, duration = ev.get("start_s"), ev.pop("duration_s")
+        numbers = all(isinstance(x, int | float) and not isinstance(x, bool) for x in (start, duration))
+        ev["end_s"] = start + duration if numbers else duration
+    return ev
 
 
 def _check(ev: Mapping[str, Any]) -> list[str]:

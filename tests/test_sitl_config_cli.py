@@ -79,6 +79,8 @@ def test_scenario_file_and_errors(tmp_path: Path) -> None:
     assert s.slip_ratio("right", 1.5, 0.0, 0.0) == 0.0
     assert s.slip_ratio("left", 2.0, 0.0, 0.0) == 0.0
     assert [r.at_s for r in s.reboots] == [5.0]
+    path.write_text('[[event]]\nkind = "encoder_dropout"\nwheel = "right"\nstart_s = 6.0\nduration_s = 4.0\n')
+    assert not load_scenario(path).encoder_ok("right", 9.9) and load_scenario(path).encoder_ok("right", 10.0)
     path.write_text(
         '[[event]]\ntype = "slip"\nwheel = "middle"\nstart_s = 2.0\nend_s = 1.0\nratio = 1.5\n'
         '[[event]]\ntype = "meteor"\n'
