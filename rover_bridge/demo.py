@@ -11,6 +11,7 @@ is integrated here, for comparison).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import os
@@ -174,7 +175,7 @@ def percentile(values: list[float], q: float) -> float:
     if not values:
         return float("nan")
     ordered = sorted(values)
-    idx = min(len(ordered) - 1, max(0, int(math.ceil(q / 100.0 * len(ordered))) - 1))
+    idx = min(len(ordered) - 1, max(0, math.ceil(q / 100.0 * len(ordered)) - 1))
     return ordered[idx]
 
 
@@ -286,7 +287,7 @@ class Demo:
                                    f"{timeout_s:.0f} s (autopilot heartbeat: {seen_ap}, odometry: {seen_odom})")
             for proc in self.procs:
                 if proc.poll() is not None:
-                    raise RuntimeError(f"{proc.args[2]} exited early with {proc.returncode}")
+                    raise RuntimeError(f"{proc.args!r} exited early with {proc.returncode}")
             if now >= next_hb:
                 gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
                 next_hb = now + 0.5
@@ -362,7 +363,7 @@ class Demo:
     def _summarise(self, errs: list[tuple[float, float, float, float, float]], latencies: list[float],
                    stats: dict[str, Any]) -> Summary:
         truth = self.series.truth
-        distance = sum(math.hypot(b[1] - a[1], b[2] - a[2]) for a, b in zip(truth, truth[1:], strict=False))
+        distance = sum(math.hypot(b[1] - a[1], b[2] - a[2]) for a, b in itertools.pairwise(truth))
         counters = stats.get("command", {}) if isinstance(stats.get("command"), dict) else {}
         rejected = sum(int(v) for k, v in counters.items() if k.startswith("rejected"))
         ekf_times = [e[0] for e in self.series.ekf]
@@ -413,7 +414,7 @@ def run_demo(scenario: str, scale: float, seed: int, plot_path: Path | None,
              out: Callable[[str], None] = print) -> Summary:
     demo = Demo(scenario=scenario, scale=scale, seed=seed)
     try:
-        summary, errs, stats = demo.run()
+        summary, errs, _stats = demo.run()
     finally:
         demo.stop_processes()
     out(f"\nrover-bridge demo: scenario {scenario!r}, {len(demo.series.truth)} truth samples, "

@@ -7,6 +7,7 @@ runner waits on the file descriptors with select() and then drains every link.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from typing import Any
 
@@ -105,7 +106,5 @@ class Endpoint:
         return frame
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(OSError):  # closing a dead serial port must not mask the real error
             self.conn.close()
-        except OSError:  # pragma: no cover - closing a dead serial port
-            pass

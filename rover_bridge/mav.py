@@ -12,8 +12,8 @@ import os
 
 os.environ["MAVLINK20"] = "1"
 
-from pymavlink import mavutil  # noqa: E402
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 mavutil.set_dialect("ardupilotmega")
 

@@ -96,12 +96,12 @@ class Lockstep:
     def run_for(self, duration_s: float, every_s: float = 0.1,
                 send: Any = None) -> None:
         """Step for `duration_s`; call `send()` every `every_s` (a GCS sending at 10 Hz) if given."""
-        steps = int(round(duration_s / self.dt_s))
-        every = max(1, int(round(every_s / self.dt_s)))
+        steps = round(duration_s / self.dt_s)
+        every = max(1, round(every_s / self.dt_s))
         for i in range(steps):
             if send is not None and i % every == 0:
                 send()
-            if i % int(round(1.0 / self.dt_s)) == 0:
+            if i % round(1.0 / self.dt_s) == 0:
                 self.gcs_heartbeat()
             self.step()
 
