@@ -61,3 +61,18 @@ def omega_toward_heading(target_cw_rad: float, current_cw_rad: float, kp_1_s: fl
     yaw_rate_cw = kp_1_s * heading_error_rad(target_cw_rad, current_cw_rad)
     yaw_rate_cw = max(-max_rad_s, min(max_rad_s, yaw_rate_cw))
     return omega_from_mavlink_yaw_rate(yaw_rate_cw)
+
+
+# Sign of each axis of (x, y, z, roll, pitch, yaw) - or of their rates - from x-forward/y-left/z-up
+# to FRD: a half turn about x, so y, z, pitch and yaw change sign, x and roll do not.
+FLU_TO_FRD_SIGNS = (1.0, -1.0, -1.0, 1.0, -1.0, -1.0)
+
+
+def covariance_frd_from_flu(cov_flu: list[list[float]]) -> list[list[float]]:
+    """6x6 covariance of (x, y, z, roll, pitch, yaw) or of their rates: FLU -> FRD.
+
+    C_frd = S C_flu S with S = diag(FLU_TO_FRD_SIGNS): variances keep their values, cross terms
+    between one flipped and one unflipped axis change sign (e.g. x-y, x-yaw), others do not (y-yaw).
+    """
+    s = FLU_TO_FRD_SIGNS
+    return [[s[i] * s[j] * float(cov_flu[i][j]) for j in range(6)] for i in range(6)]

@@ -1,0 +1,432 @@
+"""Wheel + gyro EKF (pure): motion and measurement models, their Jacobians, and a filterpy wrapper.
+
+State (internal convention of rover-bridge: x forward of the start pose, y left, yaw counter-clockwise)
+
+    0 x_m   1 y_m   2 yaw_rad   3 v_m_s (forward)   4 omega_rad_s (CCW)   5 gyro_bias_rad_s
+    6 track_scale   (effective track width / nominal)            } only with calibrate = true
+    7 radius_ratio  (effective right wheel scale / left)         }
+
+Motion: v and omega are random walks; the pose moves along the exact circular arc they describe
+over dt (odometry.arc_factors), so a spin in place and a straight line are both exact.
+
+Measurements
+- wheels: the nominal wheel surface speeds over the interval between two WHEEL_DISTANCE stamps,
+  combined as z = [v_wheel, omega_wheel] = [(l + r) / 2, (r - l) / L_nominal]. With calibration
+  the predicted wheel speeds are l = (v - omega*k*L/2) / s_l and r = (v + omega*k*L/2) / s_r, with
+  s_l = 2 / (1 + q), s_r = 2q / (1 + q) (mean scale 1: the overall distance scale is not
+  observable without an absolute reference, the ratio and the track are - from the gyro).
+- gyro: z = omega + bias.
+
+Gating is per sensor on the Mahalanobis distance of the innovation. Wheel slip is a separate test:
+the wheels' yaw rate against the gyro's (bias removed) over the same interval; on slip the wheels'
+yaw contribution is down-weighted and their velocity variance inflated.
+
+Every model is a pure function of (x, dt) so tests can check the Jacobians by finite differences.
+"""
+
+# Kalman-filter notation (F, H, P, Q, R, S, L) reads better than pep8 names here.
+# ruff: noqa: N802, N803, N806
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from filterpy.kalman import ExtendedKalmanFilter
+
+from rover_bridge.odometry import Pose2D, arc_factors, wrap_angle
+
+Vec = npt.NDArray[np.float64]
+Mat = npt.NDArray[np.float64]
+
+IX, IY, IYAW, IV, IW, IB, IKT, IKR = range(8)
+N_BASE = 6
+N_CAL = 8
+
+# Process noise densities (per second). Chosen so v and omega follow the sensors closely
+# (a rover changes speed far faster than the filter would believe otherwise); bias and
+# calibration drift slowly. Units: (m/s^2)^2 s, (rad/s^2)^2 s, (rad/s)^2/s, 1/s.
+Q_V = 1.0
+Q_OMEGA = 4.0
+Q_BIAS = 1e-8
+Q_CAL = 1e-10
+# Pose noise that grows with the distance driven and the angle turned (unmodelled slip,
+# uneven ground): variance per metre travelled / per radian turned.
+Q_POS_PER_M = 1e-4  # m^2 / m
+Q_YAW_PER_M = 2e-5  # rad^2 / m
+Q_YAW_PER_RAD = 1e-5  # rad^2 / rad
+
+# Initial uncertainty (1 sigma) of the states that are not known at start.
+SIGMA0_V = 0.5
+SIGMA0_OMEGA = 1.0
+SIGMA0_BIAS = 0.03
+SIGMA0_TRACK_SCALE = 0.05
+SIGMA0_RADIUS_RATIO = 0.03
+SIGMA0_POSE = 1e-3  # the start pose is the origin by definition: tiny, never zero (P stays positive definite)
+
+# Slip handling: how much the wheels' yaw rate is down-weighted and their speed variance inflated.
+SLIP_OMEGA_VAR_FACTOR = 1e4
+SLIP_V_VAR_FACTOR = 100.0
+# When both wheels did not move at all over an interval the rover is standing still (a
+# zero-velocity update): the encoders then measure v = omega = 0 much better than the
+# per-reading noise suggests, and that is what makes the gyro bias observable at rest.
+STATIONARY_SIGMA_V_M_S = 1e-3
+STATIONARY_SIGMA_OMEGA_RAD_S = 1e-3
+# A sensor rejected this many times in a row is accepted again: the filter, not the sensor,
+# is then the likelier culprit (robot_localization has no such escape and can lock out).
+MAX_CONSECUTIVE_REJECTS = 5
+
+
+@dataclass(frozen=True, slots=True)
+class NoiseModel:
+    """Measurement noise and gating (from [estimator])."""
+
+    gyro_noise_rad_s: float = 0.005
+    wheel_noise_m: float = 0.0005
+    wheel_noise_fraction: float = 0.02
+    gate_sigma: float = 4.0
+
+
+# ---------------------------------------------------------------- pure models
+
+def _arc_derivatives(d: float) -> tuple[float, float]:
+    """d/dd of arc_factors(d): (a', b') with a = sin d / d, b = (1 - cos d) / d."""
+    if abs(d) < 1e-3:
+        d2 = d * d
+        return -d / 3.0 + d * d2 / 30.0, 0.5 - d2 / 8.0 + d2 * d2 / 144.0
+    s, c = math.sin(d), math.cos(d)
+    return (d * c - s) / (d * d), (d * s - (1.0 - c)) / (d * d)
+
+
+def fx(x: Vec, dt_s: float) -> Vec:
+    """Motion model: move along the arc of (v, omega) for dt_s; everything else is constant."""
+    out = x.copy()
+    yaw, v, w = x[IYAW], x[IV], x[IW]
+    ds, dyaw = v * dt_s, w * dt_s
+    a, b = arc_factors(dyaw)
+    c, s = math.cos(yaw), math.sin(yaw)
+    fwd, left = ds * a, ds * b
+    out[IX] = x[IX] + c * fwd - s * left
+    out[IY] = x[IY] + s * fwd + c * left
+    out[IYAW] = wrap_angle(yaw + dyaw)
+    return out
+
+
+def F_jacobian(x: Vec, dt_s: float) -> Mat:
+    """d fx / d x."""
+    n = x.shape[0]
+    F = np.eye(n)
+    yaw, v, w = x[IYAW], x[IV], x[IW]
+    ds, dyaw = v * dt_s, w * dt_s
+    a, b = arc_factors(dyaw)
+    da, db = _arc_derivatives(dyaw)
+    c, s = math.cos(yaw), math.sin(yaw)
+    fwd, left = ds * a, ds * b
+    F[IX, IYAW] = -s * fwd - c * left
+    F[IY, IYAW] = c * fwd - s * left
+    # d/dv: ds = v dt
+    F[IX, IV] = dt_s * (c * a - s * b)
+    F[IY, IV] = dt_s * (s * a + c * b)
+    # d/domega: dyaw = omega dt
+    dfwd, dleft = ds * da * dt_s, ds * db * dt_s
+    F[IX, IW] = c * dfwd - s * dleft
+    F[IY, IW] = s * dfwd + c * dleft
+    F[IYAW, IW] = dt_s
+    return F
+
+
+def process_noise(x: Vec, dt_s: float) -> Mat:
+    """Q for one step: random walks of v, omega, bias, calibration; pose noise grows with speed."""
+    n = x.shape[0]
+    Q = np.zeros((n, n))
+    dist_m = abs(x[IV]) * dt_s
+    turn_rad = abs(x[IW]) * dt_s
+    Q[IX, IX] = Q[IY, IY] = Q_POS_PER_M * dist_m
+    Q[IYAW, IYAW] = Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad
+    Q[IV, IV] = Q_V * dt_s
+    Q[IW, IW] = Q_OMEGA * dt_s
+    Q[IB, IB] = Q_BIAS * dt_s
+    if n == N_CAL:
+        Q[IKT, IKT] = Q[IKR, IKR] = Q_CAL * dt_s
+    return Q
+
+
+def _geometry(x: Vec) -> tuple[float, float]:
+    """(track_scale, radius_ratio); nominal (1, 1) without calibration states."""
+    if x.shape[0] == N_CAL:
+        return float(x[IKT]), float(x[IKR])
+    return 1.0, 1.0
+
+
+def wheel_speeds_from_state(x: Vec, track_width_m: float) -> tuple[float, float]:
+    """Nominal-geometry wheel surface speeds (left, right) the state predicts."""
+    kt, q = _geometry(x)
+    sl, sr = 2.0 / (1.0 + q), 2.0 * q / (1.0 + q)
+    half = 0.5 * track_width_m * kt * x[IW]
+    return (x[IV] - half) / sl, (x[IV] + half) / sr
+
+
+def hx_wheels(x: Vec, track_width_m: float) -> Vec:
+    """Predicted z_wheels = [v_wheel, omega_wheel] (nominal track)."""
+    ul, ur = wheel_speeds_from_state(x, track_width_m)
+    return np.array([0.5 * (ul + ur), (ur - ul) / track_width_m])
+
+
+def H_wheels(x: Vec, track_width_m: float) -> Mat:
+    """d hx_wheels / d x."""
+    n = x.shape[0]
+    kt, q = _geometry(x)
+    L = track_width_m
+    sl, sr = 2.0 / (1.0 + q), 2.0 * q / (1.0 + q)
+    v, w = x[IV], x[IW]
+    # rows: d ul, d ur
+    dul = np.zeros(n)
+    dur = np.zeros(n)
+    dul[IV], dur[IV] = 1.0 / sl, 1.0 / sr
+    dul[IW], dur[IW] = -0.5 * L * kt / sl, 0.5 * L * kt / sr
+    if n == N_CAL:
+        dul[IKT], dur[IKT] = -0.5 * L * w / sl, 0.5 * L * w / sr
+        dsl, dsr = -2.0 / (1.0 + q) ** 2, 2.0 / (1.0 + q) ** 2
+        dul[IKR] = -(v - 0.5 * L * kt * w) / (sl * sl) * dsl
+        dur[IKR] = -(v + 0.5 * L * kt * w) / (sr * sr) * dsr
+    H = np.empty((2, n))
+    H[0] = 0.5 * (dul + dur)
+    H[1] = (dur - dul) / L
+    return H
+
+
+def hx_gyro(x: Vec) -> Vec:
+    return np.array([x[IW] + x[IB]])
+
+
+def H_gyro(x: Vec) -> Mat:
+    H = np.zeros((1, x.shape[0]))
+    H[0, IW] = H[0, IB] = 1.0
+    return H
+
+
+def wheel_measurement(d_left_m: float, d_right_m: float, dt_s: float, track_width_m: float) -> Vec:
+    """z_wheels from the nominal wheel distance increments over dt_s."""
+    ul, ur = d_left_m / dt_s, d_right_m / dt_s
+    return np.array([0.5 * (ul + ur), (ur - ul) / track_width_m])
+
+
+def wheel_noise(d_left_m: float, d_right_m: float, dt_s: float, track_width_m: float,
+                noise: NoiseModel) -> Mat:
+    """R of z_wheels: per-wheel speed variance (reading noise / dt and a fraction of the speed)."""
+    base = (math.sqrt(2.0) * noise.wheel_noise_m / dt_s) ** 2  # two readings per increment
+    vl = base + (noise.wheel_noise_fraction * d_left_m / dt_s) ** 2
+    vr = base + (noise.wheel_noise_fraction * d_right_m / dt_s) ** 2
+    L = track_width_m
+    return np.array([[0.25 * (vl + vr), 0.5 * (vr - vl) / L],
+                     [0.5 * (vr - vl) / L, (vl + vr) / (L * L)]])
+
+
+# ---------------------------------------------------------------- the filter
+
+@dataclass(frozen=True, slots=True)
+class WheelUpdate:
+    """What happened to one wheel measurement."""
+
+    accepted: bool
+    slip: bool
+    stationary: bool
+    slip_d2: float  # squared Mahalanobis distance of the wheel/gyro yaw-rate disagreement
+    d2: float  # squared Mahalanobis distance of the (possibly down-weighted) innovation
+
+
+class WheelGyroEKF:
+    """filterpy's ExtendedKalmanFilter with the models above, gating and slip handling.
+
+    Time is an argument everywhere (`t_s`, any monotonic time line); the filter keeps the time of
+    its state and never moves backwards: a measurement older than the state is applied at the
+    state's time (a few ms of skew between streams is far below what the model resolves).
+    """
+
+    def __init__(self, track_width_m: float, noise: NoiseModel | None = None, calibrate: bool = False,
+                 pose: Pose2D | None = None) -> None:
+        if not (math.isfinite(track_width_m) and track_width_m > 0.0):
+            raise ValueError(f"track_width_m must be a finite number > 0, got {track_width_m!r}")
+        self.track_width_m = float(track_width_m)
+        self.noise = noise if noise is not None else NoiseModel()
+        self.calibrate = calibrate
+        n = N_CAL  # geometry states always: estimated with calibrate, considered without
+        self.n = n
+        self._consider: list[int] = [] if calibrate else [IKT, IKR]
+        self.ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1)
+        self.time_s: float | None = None
+        self._gyro_R = np.array([[self.noise.gyro_noise_rad_s ** 2]])
+        self._gate2 = self.noise.gate_sigma ** 2
+        self.rejects_in_row = {"wheels": 0, "gyro": 0}
+        self._init_state(pose if pose is not None else Pose2D())
+
+    def _init_state(self, pose: Pose2D) -> None:
+        x = np.zeros(self.n)
+        x[IX], x[IY], x[IYAW] = pose.x_m, pose.y_m, pose.yaw_rad
+        sig = [SIGMA0_POSE, SIGMA0_POSE, SIGMA0_POSE, SIGMA0_V, SIGMA0_OMEGA, SIGMA0_BIAS]
+        if self.n == N_CAL:
+            x[IKT] = x[IKR] = 1.0
+            sig += [SIGMA0_TRACK_SCALE, SIGMA0_RADIUS_RATIO]
+        self.ekf.x = x
+        self.ekf.P = np.diag(np.square(sig))
+
+    # -- accessors
+    @property
+    def x(self) -> Vec:
+        return self.ekf.x  # type: ignore[no-any-return]
+
+    @property
+    def P(self) -> Mat:
+        return self.ekf.P  # type: ignore[no-any-return]
+
+    @property
+    def pose(self) -> Pose2D:
+        x = self.ekf.x
+        return Pose2D(float(x[IX]), float(x[IY]), float(x[IYAW]))
+
+    # -- time
+    def predict_to(self, t_s: float) -> None:
+        if self.time_s is None:
+            self.time_s = t_s
+            return
+        dt = t_s - self.time_s
+        if dt <= 0.0:
+            return
+        x = self.ekf.x
+        self.ekf.F = F_jacobian(x, dt)
+        self.ekf.Q = process_noise(x, dt)
+        self.ekf.x = fx(x, dt)
+        self.ekf.P = self.ekf.F @ self.ekf.P @ self.ekf.F.T + self.ekf.Q
+        self.time_s = t_s
+
+    def extrapolate(self, t_s: float) -> tuple[Vec, Mat]:
+        """State and covariance predicted to t_s, without changing the filter (for publishing)."""
+        x, P = self.ekf.x, self.ekf.P
+        if self.time_s is None or t_s <= self.time_s:
+            return x.copy(), P.copy()
+        dt = t_s - self.time_s
+        F = F_jacobian(x, dt)
+        return fx(x, dt), F @ P @ F.T + process_noise(x, dt)
+
+    # -- updates
+    def _gate(self, sensor: str, d2: float) -> bool:
+        if d2 <= self._gate2 or self.rejects_in_row[sensor] + 1 >= MAX_CONSECUTIVE_REJECTS:
+            self.rejects_in_row[sensor] = 0
+            return True
+        self.rejects_in_row[sensor] += 1
+        return False
+
+    def _update(self, z: Vec, H: Mat, hx: Vec, R: Mat) -> None:
+        """EKF update. Without calibration the geometry states are *consider* states (Schmidt-Kalman):
+        their gain rows are zero, so they stay at nominal, but their uncertainty still weighs every
+        update - a wheel-geometry error is systematic, and without this the filter would average it
+        over thousands of samples and learn it as gyro bias (2 % radius error at 0.8 m/s looks like
+        0.05 rad/s of bias)."""
+        consider = self._consider
+        if not consider:
+            self.ekf.update(z, lambda _x: H, lambda _x: hx, R=R)
+        else:
+            P = self.ekf.P
+            PHT = P @ H.T
+            K = PHT @ np.linalg.inv(H @ PHT + R)
+            K[consider, :] = 0.0
+            self.ekf.x = self.ekf.x + K @ (z - hx)
+            I_KH = np.eye(self.n) - K @ H
+            self.ekf.P = I_KH @ P @ I_KH.T + K @ R @ K.T  # Joseph form: valid for any gain
+        self.ekf.x[IYAW] = wrap_angle(float(self.ekf.x[IYAW]))
+
+    def gyro_innovation_d2(self, omega_rad_s: float) -> float:
+        H = H_gyro(self.ekf.x)
+        y = omega_rad_s - float(hx_gyro(self.ekf.x)[0])
+        S = float((H @ self.ekf.P @ H.T)[0, 0]) + float(self._gyro_R[0, 0])
+        return y * y / S
+
+    def update_gyro(self, t_s: float, omega_rad_s: float) -> bool:
+        """Fuse one gyro yaw rate (CCW +, rad/s). False when it failed the gate (not fused)."""
+        self.predict_to(t_s)
+        if not self._gate("gyro", self.gyro_innovation_d2(omega_rad_s)):
+            return False
+        x = self.ekf.x
+        self._update(np.array([omega_rad_s]), H_gyro(x), hx_gyro(x), self._gyro_R)
+        return True
+
+    def slip_d2(self, z: Vec, R: Mat, gyro_omega_rad_s: float | None, gyro_spread_rad_s: float = 0.0) -> float:
+        """Squared Mahalanobis distance between the wheels' yaw rate and the gyro's (bias removed).
+
+        The reference is what the wheels would read if the body turned at gyro - bias, with the
+        state's geometry; its variance adds the gyro noise, the bias and the calibration uncertainty.
+        """
+        if gyro_omega_rad_s is None:
+            return 0.0
+        x, P = self.ekf.x, self.ekf.P
+        xg = x.copy()
+        xg[IW] = gyro_omega_rad_s - x[IB]
+        predicted = float(hx_wheels(xg, self.track_width_m)[1])
+        Hg = H_wheels(xg, self.track_width_m)[1]
+        # The spread of the gyro samples over the interval covers an omega that changed within it.
+        var = float(R[1, 1]) + float(Hg[IW]) ** 2 * (
+            float(self._gyro_R[0, 0]) + float(P[IB, IB]) + gyro_spread_rad_s**2)
+        if self.n == N_CAL:
+            g = Hg[IKT:]
+            var += float(g @ P[IKT:, IKT:] @ g)
+        y = float(z[1]) - predicted
+        return y * y / var
+
+    def update_wheels(self, t_s: float, d_left_m: float, d_right_m: float, dt_s: float,
+                      gyro_omega_rad_s: float | None = None, gyro_spread_rad_s: float = 0.0) -> WheelUpdate:
+        """Fuse the nominal wheel distance increments over the last dt_s (ending at t_s).
+
+        `gyro_omega_rad_s` is the gyro's mean yaw rate over the same interval (raw, bias included),
+        if any: it is the reference of the slip test; `gyro_spread_rad_s` half the range of the gyro
+        samples over the interval (an omega that changed within it is not slip).
+        """
+        self.predict_to(t_s)
+        L = self.track_width_m
+        stationary = d_left_m == 0.0 and d_right_m == 0.0
+        if stationary:
+            z = np.zeros(2)
+            R = np.diag([STATIONARY_SIGMA_V_M_S ** 2, STATIONARY_SIGMA_OMEGA_RAD_S ** 2])
+        else:
+            z = wheel_measurement(d_left_m, d_right_m, dt_s, L)
+            R = wheel_noise(d_left_m, d_right_m, dt_s, L, self.noise)
+        slip_d2 = self.slip_d2(z, R, gyro_omega_rad_s, gyro_spread_rad_s)
+        slip = slip_d2 > self._gate2 and not stationary
+        if slip:
+            R = R.copy()
+            R[1, 1] *= SLIP_OMEGA_VAR_FACTOR
+            R[0, 1] *= math.sqrt(SLIP_OMEGA_VAR_FACTOR * SLIP_V_VAR_FACTOR)
+            R[1, 0] = R[0, 1]
+            R[0, 0] *= SLIP_V_VAR_FACTOR
+        x, P = self.ekf.x, self.ekf.P
+        H = H_wheels(x, L)
+        hx = hx_wheels(x, L)
+        y = z - hx
+        S = H @ P @ H.T + R
+        d2 = float(y @ np.linalg.solve(S, y))
+        # Only the velocity part decides the gate when the yaw part is already down-weighted.
+        gate_d2 = float(y[0] * y[0] / S[0, 0]) if slip else d2 / 2.0
+        if not self._gate("wheels", gate_d2):
+            return WheelUpdate(False, slip, stationary, slip_d2, d2)
+        self._update(z, H, hx, R)
+        if slip:
+            # Honest velocity variance: slipping wheels overstate the speed by an unknown amount.
+            self.ekf.P[IV, IV] += (SLIP_V_VAR_FACTOR - 1.0) * float(R[0, 0]) / SLIP_V_VAR_FACTOR
+        return WheelUpdate(True, slip, stationary, slip_d2, d2)
+
+    # -- resets
+    def set_pose(self, pose: Pose2D, sigma_m: float = SIGMA0_POSE,
+                 sigma_yaw_rad: float = SIGMA0_POSE) -> None:
+        """Put the pose at `pose` with a small uncertainty; velocities, bias and calibration are kept."""
+        x, P = self.ekf.x, self.ekf.P
+        x[IX], x[IY], x[IYAW] = pose.x_m, pose.y_m, wrap_angle(pose.yaw_rad)
+        P[0:3, :] = 0.0
+        P[:, 0:3] = 0.0
+        P[IX, IX] = P[IY, IY] = sigma_m ** 2
+        P[IYAW, IYAW] = sigma_yaw_rad ** 2
+
+    def calibration(self) -> tuple[float, float, float, float]:
+        """(track_scale, sigma, radius_ratio, sigma); nominal (1, prior sigma, 1, prior sigma) without calibration."""
+        P = self.ekf.P
+        return (float(self.ekf.x[IKT]), math.sqrt(max(0.0, float(P[IKT, IKT]))),
+                float(self.ekf.x[IKR]), math.sqrt(max(0.0, float(P[IKR, IKR]))))

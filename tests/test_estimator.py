@@ -1,0 +1,181 @@
+"""EKF models: Jacobians against finite differences, hand-derived motion cases, gating, slip."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rover_bridge.estimator import (
+    IB,
+    IKR,
+    IKT,
+    IV,
+    IW,
+    IX,
+    IY,
+    IYAW,
+    N_CAL,
+    F_jacobian,
+    H_gyro,
+    H_wheels,
+    NoiseModel,
+    WheelGyroEKF,
+    _arc_derivatives,
+    fx,
+    hx_gyro,
+    hx_wheels,
+    wheel_noise,
+)
+from rover_bridge.odometry import Pose2D, arc_factors
+
+L = 0.30
+
+
+def _numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:  # type: ignore[no-untyped-def]
+    cols = []
+    for i in range(x.shape[0]):
+        dx = np.zeros_like(x)
+        dx[i] = eps
+        cols.append((f(x + dx) - f(x - dx)) / (2 * eps))
+    return np.array(cols).T
+
+
+def _random_states(n: int, seed: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    states = []
+    for k in range(n):
+        x = np.zeros(N_CAL)
+        x[IX], x[IY] = rng.uniform(-5, 5, 2)
+        x[IYAW] = rng.uniform(-3.0, 3.0)
+        x[IV] = rng.uniform(-1.5, 1.5)
+        # every third state turns almost not at all: the series branch of the arc factors
+        x[IW] = rng.uniform(-2.0, 2.0) if k % 3 else rng.uniform(-1e-5, 1e-5)
+        x[IB] = rng.uniform(-0.05, 0.05)
+        x[IKT] = rng.uniform(0.9, 1.1)
+        x[IKR] = rng.uniform(0.95, 1.05)
+        states.append(x)
+    return states
+
+
+@pytest.mark.parametrize("dt_s", [0.02, 0.05, 0.5])
+def test_motion_jacobian_matches_finite_differences(dt_s: float) -> None:
+    for x in _random_states(12, seed=7):
+        numeric = _numeric_jacobian(lambda s: fx(s, dt_s), x)
+        np.testing.assert_allclose(F_jacobian(x, dt_s), numeric, atol=2e-7, rtol=1e-6)
+
+
+def test_measurement_jacobians_match_finite_differences() -> None:
+    for x in _random_states(12, seed=11):
+        np.testing.assert_allclose(H_wheels(x, L), _numeric_jacobian(lambda s: hx_wheels(s, L), x),
+                                   atol=1e-7, rtol=1e-6)
+        np.testing.assert_allclose(H_gyro(x), _numeric_jacobian(hx_gyro, x), atol=1e-9)
+
+
+def test_arc_derivatives_continuous_across_the_series_switch() -> None:
+    for d in (-2.0, -1e-3 * 1.0001, -1e-3 * 0.9999, -1e-6, 0.0, 1e-6, 1e-3 * 0.9999, 1e-3 * 1.0001, 1.5):
+        eps = 1e-6
+        num_a = (arc_factors(d + eps)[0] - arc_factors(d - eps)[0]) / (2 * eps)
+        num_b = (arc_factors(d + eps)[1] - arc_factors(d - eps)[1]) / (2 * eps)
+        da, db = _arc_derivatives(d)
+        assert da == pytest.approx(num_a, abs=1e-7)
+        assert db == pytest.approx(num_b, abs=1e-7)
+
+
+def _state(v: float = 0.0, w: float = 0.0, yaw: float = 0.0) -> np.ndarray:
+    x = np.zeros(N_CAL)
+    x[IV], x[IW], x[IYAW] = v, w, yaw
+    x[IKT] = x[IKR] = 1.0
+    return x
+
+
+def test_motion_model_hand_cases() -> None:
+    # straight: 1 m/s for 2 s along yaw 0
+    np.testing.assert_allclose(fx(_state(v=1.0), 2.0)[[IX, IY, IYAW]], [2.0, 0.0, 0.0], atol=1e-12)
+    # spin in place: a quarter turn left, no translation
+    np.testing.assert_allclose(fx(_state(w=math.pi / 2), 1.0)[[IX, IY, IYAW]], [0.0, 0.0, math.pi / 2],
+                               atol=1e-12)
+    # quarter circle of radius 1 to the left: ends at (1, 1) facing +y
+    np.testing.assert_allclose(fx(_state(v=1.0, w=1.0), math.pi / 2)[[IX, IY, IYAW]],
+                               [1.0, 1.0, math.pi / 2], atol=1e-12)
+    # the same arc starting at yaw = 90 deg: ends at (-1, 1)
+    np.testing.assert_allclose(fx(_state(v=1.0, w=1.0, yaw=math.pi / 2), math.pi / 2)[[IX, IY]], [-1.0, 1.0],
+                               atol=1e-12)
+
+
+def test_wheel_model_hand_values() -> None:
+    # 0.5 m/s forward, 1 rad/s left, nominal geometry: wheels at 0.35 and 0.65 m/s
+    x = _state(v=0.5, w=1.0)
+    np.testing.assert_allclose(hx_wheels(x, L), [0.5, 1.0])
+    # track 10 % wider than nominal: the same body rate spreads the wheels 10 % more
+    x[IKT] = 1.1
+    np.testing.assert_allclose(hx_wheels(x, L), [0.5, 1.1])
+    # right wheel 2 % larger (ratio 1.02): left scale 2/2.02, right 2*1.02/2.02 -> the right encoder
+    # reads less than the ground moves, the left more
+    x = _state(v=1.0)
+    x[IKR] = 1.02
+    ul, ur = 1.0 * 2.02 / 2.0, 1.0 * 2.02 / 2.04
+    np.testing.assert_allclose(hx_wheels(x, L), [0.5 * (ul + ur), (ur - ul) / L])
+
+
+def test_wheel_noise_hand_values() -> None:
+    noise = NoiseModel(wheel_noise_m=0.001, wheel_noise_fraction=0.1)
+    # dt 0.1: base per-wheel speed variance (sqrt(2) * 0.001 / 0.1)^2 = 2e-4; speeds 0.1 and 0.3 m/s
+    r_cov = wheel_noise(0.01, 0.03, 0.1, L, noise)
+    vl, vr = 2e-4 + 1e-4, 2e-4 + 9e-4
+    expected = [[0.25 * (vl + vr), 0.5 * (vr - vl) / L], [0.5 * (vr - vl) / L, (vl + vr) / L**2]]
+    np.testing.assert_allclose(r_cov, expected)
+
+
+def _settled(calibrate: bool = False) -> WheelGyroEKF:
+    """A filter driven straight at 0.5 m/s for 2 s with agreeing wheels and gyro."""
+    ekf = WheelGyroEKF(L, calibrate=calibrate)
+    t = 0.0
+    for _ in range(40):
+        t += 0.05
+        ekf.update_wheels(t, 0.025, 0.025, 0.05, gyro_omega_rad_s=0.0)
+        ekf.update_gyro(t, 0.0)
+    return ekf
+
+
+def test_gyro_outlier_rejected_and_normal_sample_accepted() -> None:
+    ekf = _settled()
+    omega_before = float(ekf.x[IW])
+    assert not ekf.update_gyro(2.05, 5.0)  # 5 rad/s out of nowhere, 50 ms after 0
+    assert float(ekf.x[IW]) == pytest.approx(omega_before, abs=1e-3)
+    assert ekf.rejects_in_row["gyro"] == 1
+    assert ekf.update_gyro(2.06, 0.01)
+    assert ekf.rejects_in_row["gyro"] == 0
+
+
+def test_persistent_gyro_rejections_end_in_acceptance() -> None:
+    ekf = _settled()
+    results = [ekf.update_gyro(2.05 + 0.01 * k, 5.0) for k in range(6)]
+    # four rejected, the fifth in a row is taken (the filter is the likelier culprit by then)
+    assert results[:5] == [False, False, False, False, True]
+
+
+def test_slip_detected_when_wheels_and_gyro_disagree() -> None:
+    ekf = _settled()
+    # left wheel spins 50 % faster than the right at 0.5 m/s: wheels say -0.83 rad/s, the gyro 0
+    res = ekf.update_wheels(2.05, 0.0375, 0.025, 0.05, gyro_omega_rad_s=0.0)
+    assert res.slip and res.accepted
+    ekf2 = _settled()
+    res2 = ekf2.update_wheels(2.05, 0.0251, 0.0249, 0.05, gyro_omega_rad_s=0.0)
+    assert not res2.slip
+
+
+def test_slip_down_weights_the_wheels_yaw() -> None:
+    ekf = _settled()
+    ekf.update_wheels(2.05, 0.0375, 0.025, 0.05, gyro_omega_rad_s=0.0)
+    # the wheels alone would say omega = -0.83 rad/s; the down-weighted update barely moves it
+    assert abs(float(ekf.x[IW])) < 0.05
+
+
+def test_set_pose_keeps_velocity_and_shrinks_pose_uncertainty() -> None:
+    ekf = _settled()
+    ekf.set_pose(Pose2D(1.0, -2.0, 0.5))
+    assert ekf.pose == Pose2D(1.0, -2.0, 0.5)
+    assert float(ekf.x[IV]) == pytest.approx(0.5, abs=0.01)
+    assert float(ekf.P[IX, IX]) < 1e-5 and float(ekf.P[IX, IV]) == 0.0
