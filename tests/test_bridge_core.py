@@ -19,6 +19,7 @@ from collections.abc import Sequence
 import pytest
 
 from rover_bridge.bridge import CommandCore, State
+from rover_bridge.core import Core
 from rover_bridge.identity import Identity
 from rover_bridge.mav import MAVLinkMessage, mavlink
 from rover_bridge.params import LimitsParams, Profile
@@ -562,3 +563,25 @@ def test_shutdown_release_on_ch9_18() -> None:
 def test_shutdown_before_the_vehicle_is_known_sends_no_override() -> None:
     rig = Rig()
     assert [o.msg.get_type() for o in rig.core.shutdown(0.0)] == ["STATUSTEXT"]
+
+
+# ------------------------------------------------------------------ through the composed Core
+
+
+def test_composed_core_consumes_the_request_and_shuts_down_neutral_then_release() -> None:
+    core = Core(profile())
+    ap = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    hb = Rig.wire(ap, mavlink.MAVLink_heartbeat_message(
+        mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+        mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 15, mavlink.MAV_STATE_ACTIVE, 3))
+    assert core.handle(Incoming(Link.AUTOPILOT, hb), 0.0).consumed is False
+    req = Rig.wire(gcs, mavlink.MAVLink_set_position_target_local_ned_message(
+        0, 1, 1, 8, VEL_YAW_RATE, 0, 0, 0, 0.5, 0, 0, 0, 0, 0, 0, 0.3))
+    reaction = core.handle(Incoming(Link.GCS, req), 0.01)
+    assert reaction.consumed
+    assert overrides(reaction.out) == [(1760, 1717)]
+    out = core.shutdown(0.02)
+    rc = [o for o in out if o.msg.get_type() == "RC_CHANNELS_OVERRIDE"]
+    assert overrides(rc) == [(1500, 1500), (0, 0)]
+    assert out.index(rc[0]) < out.index(rc[1])
