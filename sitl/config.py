@@ -166,7 +166,9 @@ class VehicleConfig:
                 problems.append(f"unknown key {key!r}")
                 continue
             default = field.default
-            if isinstance(default, bool) or key in ("start_armed",):
+            if value is None and default is None:
+                ok = True  # an optional value left unset ("equal to nominal")
+            elif isinstance(default, bool) or key in ("start_armed",):
                 ok = isinstance(value, bool)
             elif isinstance(default, int) and not isinstance(default, bool):
                 ok = isinstance(value, int) and not isinstance(value, bool)
