@@ -15,8 +15,8 @@ from types import ModuleType
 from rover_bridge import __version__
 from rover_bridge.errors import ConfigError
 
-# Imported lazily so that `rover-bridge check-params` does not pay for pymavlink's import.
-COMMAND_MODULES = ("check_params", "ik")
+# Each subcommand lives in its own module (rover_bridge/commands/NAME.py).
+COMMAND_MODULES = ("run", "demo", "check_params", "ik")
 
 
 def _load(module_name: str) -> ModuleType:

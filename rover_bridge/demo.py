@@ -10,6 +10,7 @@ is integrated here, for comparison).
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import itertools
 import json
@@ -83,7 +84,11 @@ def route(scale: float = 1.0) -> list[Phase]:
 
 @dataclass
 class Series:
-    """Time series the GCS collected (t is seconds since the route started)."""
+    """Time series the GCS collected, each stamped on the autopilot's boot clock (seconds).
+
+    Stamping by the senders' own clocks (LOCAL_POSITION_NED.time_boot_ms, WHEEL_DISTANCE and
+    ODOMETRY time_usec) keeps transport delay out of the comparison.
+    """
 
     truth: list[tuple[float, float, float, float]] = field(default_factory=list)  # t, north, east, yaw_cw
     ekf: list[tuple[float, float, float, float]] = field(default_factory=list)  # t, x_fwd, y_right, yaw_cw
@@ -144,29 +149,28 @@ def _wrap(a: float) -> float:
 
 
 def _interp(series: list[tuple[float, float, float, float]], t: float) -> tuple[float, float, float] | None:
-    """Sample-and-hold value of a series at time t (the latest sample not after t)."""
-    lo, hi = 0, len(series) - 1
-    if not series or series[0][0] > t:
+    """Linear interpolation of (a, b, yaw) at time t (yaw across the wrap); None outside the series."""
+    if not series or t < series[0][0] or t > series[-1][0]:
         return None
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if series[mid][0] <= t:
-            lo = mid
-        else:
-            hi = mid - 1
-    _, a, b, c = series[lo]
-    return a, b, c
+    i = bisect.bisect_left(series, (t, -math.inf, -math.inf, -math.inf))
+    if series[i][0] == t or i == 0:
+        return series[i][1], series[i][2], series[i][3]
+    (t0, a0, b0, y0), (t1, a1, b1, y1) = series[i - 1], series[i]
+    f = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
+    return a0 + f * (a1 - a0), b0 + f * (b1 - b0), y0 + f * _wrap(y1 - y0)
 
 
 def errors_over_time(series: Series) -> list[tuple[float, float, float, float, float]]:
-    """(t, wheel position error, ekf position error, wheel heading error deg, ekf heading error deg)."""
+    """(t since the first truth sample, wheel position error, EKF position error, wheel and EKF heading
+    errors in degrees), at each ground-truth sample inside both estimates' time spans."""
     out = []
+    t0 = series.truth[0][0] if series.truth else 0.0
     for t, n, e, yaw in series.truth:
         w = _interp(series.wheel, t)
         k = _interp(series.ekf, t)
         if w is None or k is None:
             continue
-        out.append((t, math.hypot(w[0] - n, w[1] - e), math.hypot(k[0] - n, k[1] - e),
+        out.append((t - t0, math.hypot(w[0] - n, w[1] - e), math.hypot(k[0] - n, k[1] - e),
                     abs(math.degrees(_wrap(w[2] - yaw))), abs(math.degrees(_wrap(k[2] - yaw)))))
     return out
 
@@ -211,6 +215,9 @@ class Demo:
         self.workdir = workdir
         self.procs: list[subprocess.Popen[bytes]] = []
         self.series = Series()
+        self._last_ned: tuple[float, float, float] | None = None
+        self._last_progress_s = -1.0
+        self._last_phase = ""
 
     @contextlib.contextmanager
     def _processes(self, tmp: Path) -> Iterator[Any]:
@@ -270,9 +277,19 @@ class Demo:
         errs = errors_over_time(self.series)
         return self._summarise(errs, latencies, stats), errs, stats
 
-    def _say(self, text: str) -> None:
-        if self.progress is not None:
-            self.progress.write("\r" + text.ljust(78)[:78])
+    def _say(self, text: str, phase: str = "") -> None:
+        """A live line on a terminal (5 Hz); one line per phase when the output is a log file."""
+        if self.progress is None:
+            return
+        now = time.monotonic()
+        if self.progress.isatty():
+            if now - self._last_progress_s >= 0.2:
+                self._last_progress_s = now
+                self.progress.write("\r" + text.ljust(79)[:79])
+                self.progress.flush()
+        elif phase != self._last_phase:
+            self._last_phase = phase
+            self.progress.write(text.rstrip() + "\n")
             self.progress.flush()
 
     def _wait_ready(self, gcs: Any, timeout_s: float = 15.0) -> None:
@@ -302,13 +319,13 @@ class Demo:
                                               0, 0, 0, 0, 0)
             if msg.get_type() == "ODOMETRY":
                 seen_odom = True
-            self._say(f"starting: autopilot {'up' if seen_ap else '...'}, bridge {'up' if seen_odom else '...'}")
+            self._say(f"starting: autopilot {'up' if seen_ap else '...'}, bridge {'up' if seen_odom else '...'}",
+                      f"start {seen_ap} {seen_odom}")
 
     def _drive(self, gcs: Any) -> None:
         phases = route(self.scale)
         total_s = sum(p.duration_s for p in phases)
         wheel = WheelOdometry(track_width_m=0.30)
-        origin: tuple[float, float, float] | None = None
         start = time.monotonic()
         next_req = next_hb = 0.0
         phase_end = 0.0
@@ -326,10 +343,10 @@ class Demo:
                     next_req = t + 1.0 / REQUEST_RATE_HZ
                 msg = gcs.recv_match(blocking=True, timeout=0.01)
                 while msg is not None:
-                    origin = self._collect(msg, t, wheel, origin)
+                    self._collect(msg, wheel)
                     msg = gcs.recv_match(blocking=False)
-                self._say(self._progress_line(phase.name, t, total_s))
-        if self.progress is not None:
+                self._say(self._progress_line(phase.name, t, total_s), phase.name)
+        if self.progress is not None and self.progress.isatty():
             self.progress.write("\n")
 
     def _progress_line(self, phase: str, t: float, total_s: float) -> str:
@@ -338,27 +355,29 @@ class Demo:
         return (f"[{'#' * done}{'.' * (20 - done)}] {t:5.1f}/{total_s:4.1f} s {phase:12s} "
                 f"N {pose[1]:+6.2f} E {pose[2]:+6.2f} yaw {math.degrees(pose[3]):+7.1f}")
 
-    def _collect(self, msg: Any, t: float, wheel: WheelOdometry,
-                 origin: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+    def _collect(self, msg: Any, wheel: WheelOdometry) -> None:
         kind = msg.get_type()
-        if kind == "SIMSTATE":
-            yaw = float(msg.yaw)
-            pos = getattr(self, "_last_ned", None)
-            if pos is not None:
-                self.series.truth.append((t, pos[0], pos[1], yaw))
-        elif kind == "LOCAL_POSITION_NED":
-            self._last_ned = (float(msg.x), float(msg.y))
+        if kind == "LOCAL_POSITION_NED":
+            self._last_ned = (msg.time_boot_ms * 1e-3, float(msg.x), float(msg.y))
+        elif kind == "SIMSTATE" and self._last_ned is not None:
+            # The emulator sends SIMSTATE (true yaw) right after LOCAL_POSITION_NED in the same step.
+            t, north, east = self._last_ned
+            if not self.series.truth or t > self.series.truth[-1][0]:
+                self.series.truth.append((t, north, east, float(msg.yaw)))
         elif kind == "ODOMETRY":
             self.series.odometry_msgs += 1
             w, _, _, z = msg.q
-            self.series.ekf.append((t, float(msg.x), float(msg.y), 2.0 * math.atan2(z, w)))
+            t = msg.time_usec * 1e-6
+            if not self.series.ekf or t > self.series.ekf[-1][0]:
+                self.series.ekf.append((t, float(msg.x), float(msg.y), 2.0 * math.atan2(z, w)))
         elif kind == "WHEEL_DISTANCE" and msg.count >= 2:
             pose = wheel.update(left_m=float(msg.distance[0]), right_m=float(msg.distance[1]))
             # Our pose is x forward / y left / yaw CCW; truth and ODOMETRY are y right, yaw CW.
-            self.series.wheel.append((t, pose.x_m, -pose.y_m, -pose.yaw_rad))
+            t = msg.time_usec * 1e-6
+            if not self.series.wheel or t > self.series.wheel[-1][0]:
+                self.series.wheel.append((t, pose.x_m, -pose.y_m, -pose.yaw_rad))
         elif kind == "STATUSTEXT":
             self.series.statustext.append(str(msg.text))
-        return origin
 
     def _summarise(self, errs: list[tuple[float, float, float, float, float]], latencies: list[float],
                    stats: dict[str, Any]) -> Summary:
