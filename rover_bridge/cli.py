@@ -16,7 +16,7 @@ from rover_bridge import __version__
 from rover_bridge.errors import ConfigError
 
 # Each subcommand lives in its own module (rover_bridge/commands/NAME.py).
-COMMAND_MODULES = ("run", "demo", "check_params", "ik")
+COMMAND_MODULES = ("run", "demo", "replay", "check_params", "ik")
 
 
 def _load(module_name: str) -> ModuleType:

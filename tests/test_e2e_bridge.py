@@ -128,6 +128,21 @@ def test_sigterm_during_motion_releases_the_overrides(tmp_path: Path) -> None:
     gcs: Any = mavutil.mavlink_connection(f"udpout:127.0.0.1:{gcs_port}", source_system=GCS_SYSID,
                                           source_component=GCS_COMPID, dialect="ardupilotmega")
     try:
+        # Wait (bounded) until the bridge is up and has forwarded the vehicle's heartbeat: start-up
+        # takes seconds on a loaded machine, and the bridge sends nothing before it knows the vehicle.
+        deadline = time.monotonic() + 30.0
+        seen = set()
+        last = time.monotonic()
+        while {"bridge", "vehicle"} - seen:
+            assert time.monotonic() < deadline, f"bridge not up: {seen}"
+            gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            now = time.monotonic()
+            emu.step(max(0.001, now - last))
+            last = now
+            while (m := gcs.recv_msg()) is not None:
+                if m.get_type() == "HEARTBEAT":
+                    seen.add("bridge" if m.get_srcComponent() == 191 else "vehicle")
+            time.sleep(0.01)
         _drive_emulator(emu, 3.0, gcs, request=True)
         now_us = emu.sim_time_us
         assert emu.autopilot.has_override(1, now_us) and emu.autopilot.has_override(3, now_us)
