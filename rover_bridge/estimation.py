@@ -597,7 +597,7 @@ class EstimateCore:
 
     def _stream_arrival(self, name: str, now_s: float) -> None:
         for s in self._streams:
-            if s.name == name and s.window_start_s is not None and now_s >= s.window_start_s:
+            if s.name == name and s.window_start_s is not None and now_s > s.window_start_s:
                 s.arrivals += 1
 
     def _check_rates(self, now_s: float) -> list[Outgoing]:

@@ -24,7 +24,7 @@ def test_first_reading_is_a_baseline_then_steps() -> None:
     step = wi.ingest(1_050_000, 2, [5.02, 7.03])
     assert step.kind is StepKind.STEP
     assert step.dt_s == pytest.approx(0.05)
-    assert (step.d_left_m, step.d_right_m) == (pytest.approx(0.02), pytest.approx(0.03))
+    assert step.d_left_m == pytest.approx(0.02) and step.d_right_m == pytest.approx(0.03)
 
 
 def test_indices_signs_and_radius_scaling_from_the_profile() -> None:
