@@ -118,29 +118,42 @@ def _frames(path: Path) -> Iterator[Any]:
 
 
 def replay(path: str | Path, profile: Profile) -> ReplayResult:
-    """Run the estimate flow over a .tlog; deterministic: same log and profile, same rows."""
+    """Run the estimate flow over a .tlog; deterministic: same log and profile, same rows.
+
+    When the log holds the bridge's own ODOMETRY (a `run --tlog` recording), the estimator ticks
+    exactly where the live one published, in the same order relative to the frames it had read;
+    otherwise (e.g. a MAVProxy log) it ticks at its own deadlines on the log's clock.
+    """
+    path = Path(path)
+    own_comp = profile.mavlink.component_id
+    ticks_from_log = any(m.get_srcComponent() == own_comp and m.get_type() == "ODOMETRY" for m in _frames(path))
     core = Core(profile)
-    own_comp = core.identity.component_id
     rows: list[OdometryRow] = []
     live: list[OdometryRow] = []
     frames = ap_frames = 0
     clock: float | None = None
-    for msg in _frames(Path(path)):
+
+    def tick(at_s: float) -> None:
+        rows.extend(OdometryRow.from_message(o.msg) for o in core.estimate.tick(at_s)
+                    if o.msg.get_msgId() == mavlink.MAVLINK_MSG_ID_ODOMETRY)
+
+    for msg in _frames(path):
         frames += 1
         t = float(msg._timestamp)
         if msg.get_srcComponent() == own_comp:
             if msg.get_type() == "ODOMETRY":
                 live.append(OdometryRow.from_message(msg))
+                if ticks_from_log:
+                    tick(t)
             continue
         if clock is None:
             clock = t
-        # The live loop ticks when a deadline passes; replay the ticks due before this frame.
-        while (deadline := core.estimate.next_deadline_s(clock)) <= t:
-            clock = max(clock, deadline)
-            rows += [OdometryRow.from_message(o.msg) for o in core.estimate.tick(clock)
-                     if o.msg.get_msgId() == mavlink.MAVLINK_MSG_ID_ODOMETRY]
-            if core.estimate.next_deadline_s(clock) <= clock:
-                break  # guard: a deadline that did not move on is left for the next frame
+        if not ticks_from_log:
+            while (deadline := core.estimate.next_deadline_s(clock)) <= t:
+                clock = max(clock, deadline)
+                tick(clock)
+                if core.estimate.next_deadline_s(clock) <= clock:
+                    break  # guard: a deadline that did not move on is left for the next frame
         clock = max(clock, t)
         if _from_autopilot(core, msg):
             ap_frames += 1

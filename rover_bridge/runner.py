@@ -127,6 +127,7 @@ class Runner:
         finally:
             if self.tlog is not None:
                 self.tlog.close()
+                self.tlog = None  # frames after the stop (a final ACK) are not recorded
 
     def close(self) -> None:
         for ep in self.endpoints:

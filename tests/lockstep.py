@@ -16,7 +16,7 @@ from rover_bridge.core import Core
 from rover_bridge.links import Endpoint
 from rover_bridge.mav import MAVLinkMessage, mavlink, mavutil
 from rover_bridge.params import Profile
-from rover_bridge.runner import Runner
+from rover_bridge.runner import Runner, TlogWriter
 from rover_bridge.wire import Link
 from sitl import Emulator, FaultConfig, VehicleConfig
 
@@ -47,7 +47,7 @@ class GcsView:
 class Lockstep:
     def __init__(self, profile: Profile, vehicle: VehicleConfig | None = None, *, seed: int = 0,
                  faults: FaultConfig | None = None, scenario: Any = None, start_armed: bool = True,
-                 dt_s: float = 0.01) -> None:
+                 dt_s: float = 0.01, tlog_path: str | None = None) -> None:
         self.dt_s = dt_s
         self.t_s = 0.0
         ap_port, gcs_port = free_udp_port(), free_udp_port()
@@ -60,7 +60,9 @@ class Lockstep:
         ids = {"source_system": self.core.identity.own_system_id, "source_component": self.core.identity.component_id}
         self.autopilot = Endpoint(f"udpout:127.0.0.1:{ap_port}", Link.AUTOPILOT, **ids)
         self.gcs_endpoint = Endpoint(f"udpin:127.0.0.1:{gcs_port}", Link.GCS, **ids)
-        self.runner = Runner(self.core, self.autopilot, [self.gcs_endpoint])
+        # The .tlog is stamped on the simulated clock, so a replay sees exactly the live timing.
+        tlog = TlogWriter(open(tlog_path, "wb"), wall_clock=lambda: self.t_s) if tlog_path else None  # noqa: SIM115
+        self.runner = Runner(self.core, self.autopilot, [self.gcs_endpoint], tlog=tlog)
         self.gcs: Any = mavutil.mavlink_connection(f"udpout:127.0.0.1:{gcs_port}", source_system=GCS_SYSID,
                                                    source_component=GCS_COMPID, dialect="ardupilotmega")
         self.view = GcsView()
