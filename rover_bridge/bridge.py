@@ -45,6 +45,7 @@ from rover_bridge.mav import MAVLinkMessage, mavlink
 from rover_bridge.outputs import OutputMap, WheelPwm
 from rover_bridge.params import Profile
 from rover_bridge.report import Reporter
+from rover_bridge.security import SecurityPolicy
 from rover_bridge.setpoints import (
     REQUEST_TYPES,
     BodyVelocity,
@@ -110,6 +111,7 @@ class CommandCore:
         self._next_output_s: float | None = None
         self._refused = False
         self._said: set[tuple[str, int, int]] = set()
+        self.security = SecurityPolicy(profile.security)
 
     # ----------------------------------------------------------------- read-only views
 
@@ -173,8 +175,12 @@ class CommandCore:
     # ----------------------------------------------------------------- hooks
 
     def _authorised(self, inc: Incoming) -> bool:
-        """Hook for [security] (allow-list, inc.signed_ok): may this source command the rover?"""
-        return True
+        """[security] (signature, allow-list): may this source command the rover?
+
+        Core's CommandGate refuses such frames before they get here (and counts them by reason); this
+        second check keeps a CommandCore used on its own just as strict.
+        """
+        return self.security.reason(inc, self.identity) is None
 
     # ----------------------------------------------------------------- incoming
 

@@ -14,6 +14,7 @@ from types import ModuleType
 
 from rover_bridge import __version__
 from rover_bridge.errors import ConfigError
+from rover_bridge.security import install_log_rate_limit
 
 # Each subcommand lives in its own module (rover_bridge/commands/NAME.py).
 COMMAND_MODULES = ("run", "demo", "replay", "check_params", "ik")
@@ -44,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    install_log_rate_limit()  # a flood of bad input must not become a flood of log lines
     try:
         code: int = args._main(args)
     except ConfigError as exc:

@@ -16,6 +16,7 @@ from rover_bridge.identity import Identity
 from rover_bridge.mav import mavlink
 from rover_bridge.params import Profile
 from rover_bridge.report import Reporter
+from rover_bridge.security import CommandGate
 from rover_bridge.wire import Incoming, Link, Outgoing, Reaction
 
 HEARTBEAT_PERIOD_S = 1.0
@@ -35,10 +36,15 @@ class Core:
         self.reporter = Reporter(self.identity)
         self.command = CommandCore(profile, self.identity, self.reporter)
         self.estimate = EstimateCore(profile, self.identity, self.reporter)
+        # [security] in front of both cores: a refused frame reaches neither, nor the autopilot.
+        self.gate = CommandGate(profile, self.identity, self.reporter)
         self._subcores: tuple[SubCore, ...] = (self.command, self.estimate)
         self._next_heartbeat_s: float | None = None
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
+        refused = self.gate.check(inc, now_s)
+        if refused is not None:
+            return refused
         consumed = False
         out: list[Outgoing] = []
         for sub in self._subcores:

@@ -108,3 +108,14 @@ class Endpoint:
     def close(self) -> None:
         with contextlib.suppress(OSError):  # closing a dead serial port must not mask the real error
             self.conn.close()
+
+    def setup_signing(self, key: bytes, *, link_id: int, initial_timestamp: int, verifier: Any) -> None:
+        """MAVLink 2 signing on this link ([security]): our frames signed, incoming ones verified.
+
+        Unsigned and badly signed frames are still decoded and handed on (the callback accepts them)
+        so the core can count and refuse them by reason; only a frame that `verifier` (a shared
+        rover_bridge.security.SignatureVerifier) accepts is marked signed (`msg._signed`).
+        """
+        self.conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=lambda _mav, _msg_id: True,
+                                initial_timestamp=initial_timestamp, link_id=link_id)
+        verifier.install(self.conn.mav)

@@ -24,6 +24,7 @@ from typing import BinaryIO
 from rover_bridge.core import Core
 from rover_bridge.links import Endpoint
 from rover_bridge.mav import MAVLinkMessage
+from rover_bridge.security import carries_signature
 from rover_bridge.wire import Incoming, Link, Outgoing
 
 log = logging.getLogger("rover_bridge.runner")
@@ -135,11 +136,15 @@ class Runner:
 
 
 def _signed_ok(ep: Endpoint, msg: MAVLinkMessage) -> bool:
-    """True when the frame was signed and pymavlink verified it against this link's key."""
+    """True only when the frame carried a signature that this link's verifier accepted.
+
+    pymavlink sets `_signed` from the signature check alone (a badly signed frame let through by the
+    allow-unsigned callback keeps False); the flag test guards against anything else setting it.
+    """
     signing = getattr(ep.conn.mav, "signing", None)
-    if signing is None or signing.secret_key is None:
+    if signing is None or signing.secret_key is None or ep.role is not Link.GCS:
         return False
-    return bool(getattr(msg, "_signed", False))
+    return getattr(msg, "_signed", False) is True and carries_signature(msg)
 
 
 def _drain(fd: int) -> None:

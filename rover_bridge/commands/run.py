@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import time
+from dataclasses import replace
 from types import FrameType
 
 from rover_bridge.core import Core
@@ -19,6 +20,7 @@ from rover_bridge.errors import ConfigError
 from rover_bridge.links import Endpoint, check_url
 from rover_bridge.params import load_profile
 from rover_bridge.runner import Runner, TlogWriter
+from rover_bridge.security import SignatureVerifier, load_key, signing_timestamp
 from rover_bridge.wire import Link
 
 NAME = "run"
@@ -42,12 +44,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="record every MAVLink frame seen and sent to this .tlog (MAVProxy/pymavlink format)")
     parser.add_argument("--stats-json", default=None, metavar="PATH",
                         help="on exit, write the bridge's counters (rejections, states, links) here as JSON")
+    parser.add_argument("--key-file", default=None, metavar="PATH",
+                        help="MAVLink 2 signing key for the ground-station links (overrides [security] key_file): "
+                             "32 raw bytes, 64 hex characters or a MAVProxy passphrase; mode 600")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop safely after this many seconds (tests, demos)")
 
 
 def main(args: argparse.Namespace) -> int:
     profile = load_profile(args.params)
+    if getattr(args, "key_file", None):
+        profile = replace(profile, security=replace(profile.security, key_file=args.key_file))
+    # Read the key before opening any link: a missing or exposed key stops the start (exit 2).
+    key = load_key(profile.security.key_file) if profile.security.key_file else None
     gcs_urls = [u for u in (args.gcs or [DEFAULT_GCS]) if u.lower() != "none"]
     problems = [p for p in (check_url(u) for u in [args.autopilot, *gcs_urls]) if p]
     if args.duration is not None and not args.duration > 0:
@@ -58,6 +67,12 @@ def main(args: argparse.Namespace) -> int:
     own_sys, own_comp = core.identity.own_system_id, core.identity.component_id
     autopilot = Endpoint(args.autopilot, Link.AUTOPILOT, source_system=own_sys, source_component=own_comp)
     gcs = [Endpoint(u, Link.GCS, source_system=own_sys, source_component=own_comp) for u in gcs_urls]
+    verifier = None
+    if key is not None:
+        # Wall-clock start: a replay recorded more than a minute before this start is refused.
+        verifier = SignatureVerifier(key, signing_timestamp(time.time()))
+        for link_id, ep in enumerate(gcs, start=1):
+            ep.setup_signing(key, link_id=link_id, initial_timestamp=verifier.timestamp, verifier=verifier)
     tlog = TlogWriter(open(args.tlog, "wb")) if args.tlog else None  # noqa: SIM115 - closed by the runner
     runner = Runner(core, autopilot, gcs, tlog=tlog)
 
@@ -93,13 +108,13 @@ def main(args: argparse.Namespace) -> int:
             os.close(read_fd)
             os.close(write_fd)
     if args.stats_json:
-        write_stats(args.stats_json, runner)
+        write_stats(args.stats_json, runner, verifier)
     if stop_requested:
         log.warning("stopped by signal %d: neutral sent, overrides released", stop_requested[0])
     return code
 
 
-def write_stats(path: str, runner: Runner) -> None:
+def write_stats(path: str, runner: Runner, verifier: SignatureVerifier | None = None) -> None:
     """Counters of every part, for the demo's report and for post-mortems."""
     core = runner.core
     stats = {
@@ -108,6 +123,8 @@ def write_stats(path: str, runner: Runner) -> None:
         "runner": {"forwarded": runner.forwarded, "consumed": runner.consumed, "ticks": runner.ticks},
         "links": {ep.url: {"rx": ep.rx_frames, "rx_bad": ep.rx_bad, "tx": ep.tx_frames} for ep in runner.endpoints},
         "statustext_suppressed": dict(core.reporter.limiter.suppressed),
+        "security": dict(core.gate.counters),
+        "signatures": dict(verifier.counters) if verifier is not None else {},
     }
     with open(path, "w", encoding="utf-8") as f:
         json.dump(stats, f, indent=1, default=str)
