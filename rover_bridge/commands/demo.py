@@ -26,7 +26,15 @@ def main(args: argparse.Namespace) -> int:
     from rover_bridge.demo import run_demo
 
     plot_path = None if args.plot.lower() == "none" else Path(args.plot)
-    summary = run_demo(args.scenario, 0.45 if args.quick else 1.0, args.seed, plot_path)
+    try:
+        summary = run_demo(args.scenario, 0.45 if args.quick else 1.0, args.seed, plot_path)
+    except KeyboardInterrupt:
+        # run_demo's cleanup has already stopped the bridge (overrides released) and the emulator.
+        print("\ndemo interrupted: bridge and emulator stopped")
+        return 130
+    except RuntimeError as exc:
+        print(f"\ndemo failed: {exc}")
+        return 1
     ok = math.isfinite(summary.ekf_final_m) and summary.distance_m > 1.0
     if not ok:
         print("demo: the rover did not drive the route; see the messages above")

@@ -1,0 +1,89 @@
+"""`rover-bridge demo` end to end: real processes on loopback, its table's numbers and its picture."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.e2e
+
+
+def test_demo_runs_reports_sane_numbers_and_draws_a_png(tmp_path: Path) -> None:
+    png = tmp_path / "demo.png"
+    summary_json = tmp_path / "summary.json"
+    env = dict(os.environ, ROVER_BRIDGE_DEMO_JSON=str(summary_json))
+    proc = subprocess.run([sys.executable, "-m", "rover_bridge", "demo", "--quick", "--plot", str(png)],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "final position error" in proc.stdout and "EKF" in proc.stdout
+    s = json.loads(summary_json.read_text())
+    assert s["distance_m"] > 3.0  # the quick route is about 4.5 m
+    # Clean scenario: both estimates stay close to the emulator's ground truth.
+    assert s["ekf_final_m"] < 0.10
+    assert s["ekf_max_m"] < 0.15
+    assert s["ekf_heading_max_deg"] < 6.0
+    assert s["wheel_final_m"] < 0.10
+    assert 27.0 <= s["odometry_rate_hz"] <= 33.0  # [odometry] rate_hz = 30, +-10 %
+    assert s["rejected"] == 0
+    assert s["latency_p50_ms"] > 0.0  # measured from the bridge's own .tlog
+    # A real PNG: signature, then an IHDR chunk with a non-empty image.
+    data = png.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
+    width, height = struct.unpack(">II", data[16:24])
+    assert width > 200 and height > 200
+
+
+def test_demo_leaves_no_process_behind_when_interrupted(tmp_path: Path) -> None:
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "demo", "--quick", "--plot", "none"],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    try:
+        # Let it get the two children running, then Ctrl-C it as a terminal would.
+        deadline = time.monotonic() + 60
+        children: list[int] = []
+        while time.monotonic() < deadline and len(children) < 2:
+            children = _children(proc.pid)
+            time.sleep(0.2)
+        assert len(children) >= 2, "demo did not start the emulator and the bridge"
+        time.sleep(1.0)
+        os.killpg(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=30) == 130
+        out = proc.stdout.read().decode(errors="replace") if proc.stdout else ""
+        assert "demo interrupted" in out and "Traceback" not in out
+        for pid in children:
+            assert not _alive(pid), f"child {pid} survived the demo's Ctrl-C"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            ppid = int(stat.rsplit(")", 1)[1].split()[1])
+            if ppid == pid:
+                out.append(int(entry.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
