@@ -257,7 +257,8 @@ class CommandGate:
         if said in self._reported or len(self._reported) >= MAX_REPORTED_SOURCES:
             return Reaction(consumed=True)
         self._reported.add(said)
-        text = f"RB: refused {inc.msg.get_type()[:16]} {reason} {source[0]}:{source[1]}"
+        # Source and reason first: STATUSTEXT carries 50 characters.
+        text = f"RB: refused {source[0]}:{source[1]} {reason} {inc.msg.get_type()}"[:50]
         out = self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, text, now_s, key=f"security.{reason}")
         return Reaction(consumed=True, out=tuple(out))
 
