@@ -80,7 +80,7 @@ GYRO_MESSAGES = {  # source name -> (message id, stream group), in 'auto' priori
     "raw_imu": (mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAV_DATA_STREAM_RAW_SENSORS),
 }
 GYRO_PRIORITY = tuple(GYRO_MESSAGES)
-GYRO_SILENT_S = 1.0  # 'auto' falls back to a lower-priority source after this long without the current one
+GYRO_SILENT_S = 3.0  # 'auto' falls back to a lower-priority source after this long without the current one
 
 STREAM_ACK_TIMEOUT_S = 1.0
 STREAM_ACK_ATTEMPTS = 3
