@@ -69,8 +69,8 @@ SIGMA0_POSE = 1e-3  # the start pose is the origin by definition: tiny, never ze
 SLIP_OMEGA_VAR_FACTOR = 1e4
 SLIP_V_VAR_FACTOR = 100.0
 # When both wheels did not move at all over an interval the rover is standing still (a
-# zero-velocity update): the encoders then measure v = omega = 0 much better than the
-# per-reading noise suggests, and that is what makes the gyro bias observable at rest.
+# zero-velocity update): the longer the standstill, the better the encoders bound v and omega
+# (see update_wheels), down to these floors; that is what makes the gyro bias observable at rest.
 STATIONARY_SIGMA_V_M_S = 1e-3
 STATIONARY_SIGMA_OMEGA_RAD_S = 1e-3
 # A sensor rejected this many times in a row is accepted again: the filter, not the sensor,
@@ -257,6 +257,7 @@ class WheelGyroEKF:
         self._consider: list[int] = [] if calibrate else [IKT, IKR]
         self.ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1)
         self.time_s: float | None = None
+        self._still_since_s: float | None = None  # start of the current standstill (wheels not moving)
         # Trapezoid bookkeeping between gyro samples (see update_gyro).
         self._gyro_prev: tuple[float, float] | None = None  # (time, omega after that update)
         self._turned_since_gyro_rad = 0.0
@@ -400,9 +401,18 @@ class WheelGyroEKF:
         L = self.track_width_m
         stationary = d_left_m == 0.0 and d_right_m == 0.0
         if stationary:
+            # Wheels that have not moved by a reading's resolution for T seconds bound the mean speed
+            # by resolution / T: a rover still turning slowly at the end of a spin reads "still" for
+            # one interval, and must not teach the filter a gyro bias. The bound tightens with T.
+            if self._still_since_s is None:
+                self._still_since_s = t_s - dt_s
+            still_s = max(dt_s, t_s - self._still_since_s)
+            q = self.noise.wheel_noise_m
             z = np.zeros(2)
-            R = np.diag([STATIONARY_SIGMA_V_M_S ** 2, STATIONARY_SIGMA_OMEGA_RAD_S ** 2])
+            R = np.diag([max(STATIONARY_SIGMA_V_M_S, q / still_s) ** 2,
+                         max(STATIONARY_SIGMA_OMEGA_RAD_S, 2.0 * q / (L * still_s)) ** 2])
         else:
+            self._still_since_s = None
             z = wheel_measurement(d_left_m, d_right_m, dt_s, L)
             R = wheel_noise(d_left_m, d_right_m, dt_s, L, self.noise)
         slip_d2 = self.slip_d2(z, R, gyro_omega_rad_s, gyro_spread_rad_s)
