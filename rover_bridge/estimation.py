@@ -73,6 +73,9 @@ from rover_bridge.wire import NOTHING, Incoming, Link, Outgoing, Reaction
 log = logging.getLogger("rover_bridge.estimation")
 
 POSE_RESET_COMMAND = mavlink.MAV_CMD_USER_1
+# A pose reset beyond these is garbage (a corrupted frame, degrees for metres), not a place: denied.
+POSE_RESET_MAX_M = 1e6
+POSE_RESET_MAX_YAW_DEG = 360.0
 WHEEL_DISTANCE_ID = 9000
 GYRO_MESSAGES = {  # source name -> (message id, stream group), in 'auto' priority order
     "attitude": (mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAV_DATA_STREAM_EXTRA1),
@@ -195,6 +198,7 @@ class EstimateCore:
             "wheel_stationary": 0,
             "reboots": 0,
             "pose_resets": 0,
+            "pose_resets_denied": 0,
             "odometry_sent": 0,
             "stream_requests": 0,
             "stream_fallbacks": 0,
@@ -372,7 +376,10 @@ class EstimateCore:
             if math.isnan(msg.param3)
             else frames.yaw_frd_from_yaw_flu(math.radians(float(msg.param3)))
         )
-        if not all(math.isfinite(v) for v in (x_m, y_m, yaw)):
+        in_range = (abs(x_m) <= POSE_RESET_MAX_M and abs(y_m) <= POSE_RESET_MAX_M
+                    and (math.isnan(msg.param3) or abs(float(msg.param3)) <= POSE_RESET_MAX_YAW_DEG))
+        if not (all(math.isfinite(v) for v in (x_m, y_m, yaw)) and in_range):
+            self._counters["pose_resets_denied"] += 1
             result = mavlink.MAV_RESULT_DENIED
             out: list[Outgoing] = []
         else:

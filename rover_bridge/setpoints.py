@@ -26,8 +26,13 @@ the position for as long as the target keeps streaming. Acceleration with veloci
 feed-forward and is ignored (noted); acceleration alone is rejected.
 
 Non-finite values: a NaN or infinity in any field the type mask marks as used rejects the
-whole request. Fields the mask marks as ignored carry no value, and several MAVLink senders
-fill them with NaN for exactly that reason, so they are not inspected.
+whole request. So does a finite value no sender can mean (OUT_OF_RANGE): a speed component beyond
+MAX_REQUEST_SPEED_M_S, a yaw rate beyond MAX_REQUEST_RATE_RAD_S or a yaw angle outside +-2 pi; such
+values come from corrupted frames or unit mistakes (degrees for radians), and saturating them at
+the limits would drive at full speed on garbage. Requests above the profile's limits but within
+these bounds are still accepted and limited as before. Fields the mask marks as ignored carry no
+value, and several MAVLink senders fill them with NaN for exactly that reason, so they are not
+inspected.
 """
 
 from __future__ import annotations
@@ -71,9 +76,15 @@ NO_VELOCITY = "no_velocity"
 MANUAL_OUT_OF_RANGE = "manual_out_of_range"
 MANUAL_NO_AXES = "manual_no_axes"
 MALFORMED = "malformed"
+OUT_OF_RANGE = "out_of_range"
 
 REJECTION_REASONS = (NON_FINITE, POSITION_ONLY, POSITION_UNSUPPORTED, ACCELERATION_ONLY, UNSUPPORTED_FRAME,
-                     NO_VELOCITY, MANUAL_OUT_OF_RANGE, MANUAL_NO_AXES, MALFORMED)
+                     NO_VELOCITY, MANUAL_OUT_OF_RANGE, MANUAL_NO_AXES, MALFORMED, OUT_OF_RANGE)
+
+# Plausibility bounds (not limits: the limiter does that): beyond them a value is garbage.
+MAX_REQUEST_SPEED_M_S = 100.0  # per component; ArduPilot's WP_SPEED tops out at 100 m/s
+MAX_REQUEST_RATE_RAD_S = 100.0
+MAX_REQUEST_YAW_RAD = 2.0 * math.pi
 
 # Notes on accepted requests: something in it was not followed, said once per source.
 LATERAL_IGNORED = "lateral_ignored"
@@ -163,6 +174,10 @@ def decode_position_target(msg: MAVLinkMessage) -> Decoded:
                ("afy", AY_IGNORE), ("afz", AZ_IGNORE), ("yaw", YAW_IGNORE), ("yaw_rate", YAW_RATE_IGNORE))
     if any(_used(mask, bit) and not math.isfinite(float(getattr(msg, name))) for name, bit in checked):
         return Rejected(NON_FINITE)
+    bounded = (("vx", VX_IGNORE, MAX_REQUEST_SPEED_M_S), ("vy", VY_IGNORE, MAX_REQUEST_SPEED_M_S),
+               ("yaw_rate", YAW_RATE_IGNORE, MAX_REQUEST_RATE_RAD_S), ("yaw", YAW_IGNORE, MAX_REQUEST_YAW_RAD))
+    if any(_used(mask, bit) and abs(float(getattr(msg, name))) > bound for name, bit, bound in bounded):
+        return Rejected(OUT_OF_RANGE)
 
     vx_used, vy_used = _used(mask, VX_IGNORE), _used(mask, VY_IGNORE)
     velocity_used = vx_used or vy_used
