@@ -49,7 +49,7 @@ N_CAL = 8
 # calibration drift slowly. Units: (m/s^2)^2 s, (rad/s^2)^2 s, (rad/s)^2/s, 1/s.
 Q_V = 1.0
 Q_OMEGA = 4.0
-Q_BIAS = 1e-8
+Q_BIAS = 1e-10
 Q_CAL = 1e-10
 # Pose noise that grows with the distance driven and the angle turned (unmodelled slip,
 # uneven ground): variance per metre travelled / per radian turned.
