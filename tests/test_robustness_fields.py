@@ -10,6 +10,7 @@ wheel and gyro streams running). Then one message with one poisoned field arrive
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 from typing import Any
@@ -48,6 +49,20 @@ def bad_values(cls: Any, name: str) -> list[Any]:
 
 
 class Rig:
+    _warm: Rig | None = None
+
+    @classmethod
+    def warm(cls) -> Rig:
+        """A copy of one rig after its healthy start (building each from scratch is most of the cost)."""
+        if cls._warm is None:
+            cls._warm = Rig()
+        src = cls._warm
+        rig = cls.__new__(cls)
+        rig.core = copy.deepcopy(src.core)
+        rig.ap, rig.gcs = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 255, 190)
+        rig.t_s, rig.i, rig.out = src.t_s, src.i, []
+        return rig
+
     def __init__(self) -> None:
         self.core = Core(P)
         self.ap = mavlink.MAVLink(None, 1, 1)
@@ -145,7 +160,7 @@ REQUEST_CASES += [("local_mask", spt_local, "type_mask", v) for v in (0, 0xFFFF,
                          ids=[f"{k}-{f}-{v!r}" for k, _, f, v in REQUEST_CASES])
 def test_poisoned_request_field_is_rejected_counted_and_never_reaches_a_wheel(
         kind: str, factory: Callable[..., MAVLinkMessage], field: str, value: Any) -> None:
-    rig = Rig()
+    rig = Rig.warm()
     before = sum(n for k, n in rig.core.command.counters.items() if k.startswith("rejected."))
     rig.inject(Link.GCS, factory(**{field: value}))
     rejected = sum(n for k, n in rig.core.command.counters.items() if k.startswith("rejected."))
@@ -160,7 +175,7 @@ def test_the_unpoisoned_requests_do_drive() -> None:
     # Guards the table above: each base message is accepted when not poisoned.
     for factory in (spt_local, spt_global, manual,
                     lambda: spt_local(coordinate_frame=1, type_mask=EARTH_VEL_YAW)):
-        rig = Rig()
+        rig = Rig.warm()
         rig.inject(Link.GCS, factory())
         assert rig.core.command.counters.get("requests.accepted") == 1
         assert any(w != (TRIM, TRIM) for w in rig.wheels())
@@ -246,7 +261,7 @@ MUST_COUNT = {("attitude", "yawspeed"), ("attitude", "yaw"), ("wheel_distance", 
                          ids=[f"{k}-{f}-{i}" for i, (k, _, f, _v) in enumerate(ESTIMATOR_CASES)])
 def test_poisoned_autopilot_field_keeps_the_estimate_finite_and_the_wheels_neutral(
         kind: str, factory: Callable[..., MAVLinkMessage], field: str, value: Any) -> None:
-    rig = Rig()
+    rig = Rig.warm()
     counted = {**rig.core.estimate.counters, **rig.core.command.counters}
     rig.inject(Link.AUTOPILOT, factory(**{field: value}))
     rig.assert_finite_estimate()
@@ -264,7 +279,7 @@ def test_poisoned_autopilot_field_keeps_the_estimate_finite_and_the_wheels_neutr
                                    (0.0, 0.0, 3.4e38)])
 def test_pose_reset_with_poisoned_params_is_denied_and_the_pose_stays_finite(
         param: tuple[float, float, float]) -> None:
-    rig = Rig()
+    rig = Rig.warm()
     msg = mavlink.MAVLink_command_long_message(1, 191, mavlink.MAV_CMD_USER_1, 0, *param, 0, 0, 0, 0)
     rig.inject(Link.GCS, msg)
     rig.assert_finite_estimate()
