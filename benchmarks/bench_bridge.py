@@ -1,0 +1,929 @@
+"""End-to-end benchmarks of the shipped bridge process (`python -m rover_bridge run`) over UDP loopback.
+
+Subcommands (each prints a table and finishes in well under 2 minutes; `all` runs them in turn):
+
+  latency      GCS request datagram in -> RC_CHANNELS_OVERRIDE datagram out, next to a pymavlink UDP echo
+  throughput   autopilot telemetry flood routed to a GCS: highest zero-loss rate, next to raw parse_buffer
+  cpu          CPU % of one core at nominal load (50 Hz wheels / IMU / control, 30 Hz ODOMETRY)
+  regularity   override period jitter at command.rate_hz = 50, quiet and under a 5000 msg/s GCS flood
+  memory       bridge RSS before / after one million messages
+  startup      process start -> first HEARTBEAT sent; import-time breakdown
+
+Run: python benchmarks/bench_bridge.py all   (or one subcommand; --help for options)
+Not a test: numbers depend on the machine and its load; nothing here asserts on them. Comparisons
+(bridge vs echo, bridge vs raw parse, quiet vs flood) are measured side by side in the same run.
+
+The harness fakes the autopilot and the GCS with plain UDP sockets and frames packed once by
+pymavlink, so its own cost stays small next to the bridge's. Receive times are the kernel's
+(SO_TIMESTAMPNS): on loopback that is when the sender's sendto() queued the datagram, so the
+harness's own wake-up delay is not charged to the bridge (nor to the echo).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import os
+import random
+import re
+import select
+import signal
+import socket
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from rover_bridge.mav import mavlink
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_PROFILE = REPO / "params" / "default.toml"
+LOCAL = "127.0.0.1"
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux value; Python does not export it
+MSG_OVERRIDE = mavlink.MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE
+MSG_HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
+AP_SYS, AP_COMP = 1, 1
+GCS_SYS, GCS_COMP = 255, 190
+BRIDGE_COMP = 191
+BIG_RCVBUF = 4 * 1024 * 1024  # harness sockets must not be where datagrams are lost
+
+
+# ------------------------------------------------------------------------------------- helpers
+
+def free_udp_port() -> int:
+    """A free port below the kernel's ephemeral range. Test suites running beside us pick ports the
+    bind-to-0-and-close way; had we done the same, one of their emulators could be sending to a port
+    it once chose and that is now our bridge's (it happened: thousands of foreign heartbeats a second)."""
+    while True:
+        port = random.randrange(20_000, 32_000)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind((LOCAL, port))
+            except OSError:
+                continue
+            return port
+
+
+def udp_socket(timestamps: bool = False) -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, BIG_RCVBUF)
+    if timestamps:
+        s.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    s.bind((LOCAL, 0))
+    s.setblocking(False)
+    return s
+
+
+def msg_id(frame: bytes) -> int:
+    """Message id of a MAVLink 2 frame (-1 for anything else)."""
+    if len(frame) < 12 or frame[0] != 0xFD:
+        return -1
+    return frame[7] | frame[8] << 8 | frame[9] << 16
+
+
+# Harness sockets that play the autopilot: they answer the bridge's SET_MESSAGE_INTERVAL requests as
+# ArduPilot Rover 4.7 does (DENIED for WHEEL_DISTANCE, ACCEPTED otherwise). An autopilot that never
+# answers leaves the bridge re-asking, which is a different (start-up) load than the one measured.
+AUTOPILOT_SOCKETS: set[socket.socket] = set()
+_ACK_PACKER: list[Any] = []
+
+
+def answer_command(sock: socket.socket, frame: bytes, addr: Any) -> None:
+    if sock not in AUTOPILOT_SOCKETS or msg_id(frame) != mavlink.MAVLINK_MSG_ID_COMMAND_LONG:
+        return
+    payload = frame[10:10 + frame[1]].ljust(33, b"\0")  # MAVLink 2 trims trailing zeros
+    param1 = struct.unpack_from("<f", payload, 0)[0]
+    command = struct.unpack_from("<H", payload, 28)[0]
+    if command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+        return
+    result = mavlink.MAV_RESULT_DENIED if int(param1) == 9000 else mavlink.MAV_RESULT_ACCEPTED
+    if not _ACK_PACKER:
+        _ACK_PACKER.append(Packer(AP_SYS, AP_COMP))
+    ack = mavlink.MAVLink_command_ack_message(command, result, 0, 0, frame[5], frame[6])
+    sock.sendto(_ACK_PACKER[0].pack(ack), addr)
+
+
+def recv_stamped(sock: socket.socket) -> tuple[bytes, float] | None:
+    """One datagram and its kernel receive time (time.time() seconds), or None if none is queued."""
+    try:
+        data, anc, _flags, addr = sock.recvmsg(2048, 64)
+    except BlockingIOError:
+        return None
+    answer_command(sock, data, addr)
+    for level, kind, payload in anc:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+            sec, nsec = struct.unpack("qq", payload[:16])
+            return data, sec + nsec * 1e-9
+    return data, time.time()
+
+
+def drain(sock: socket.socket) -> int:
+    n = 0
+    while True:
+        try:
+            data, addr = sock.recvfrom(4096)
+        except BlockingIOError:
+            return n
+        answer_command(sock, data, addr)
+        n += 1
+
+
+def pct(values: list[float], q: float) -> float:
+    """Nearest-rank percentile (q in 0..100)."""
+    ordered = sorted(values)
+    k = max(0, min(len(ordered) - 1, math.ceil(q / 100.0 * len(ordered)) - 1))
+    return ordered[k]
+
+
+class Packer:
+    """Packs messages as one MAVLink 2 sender would (own ids, incrementing sequence)."""
+
+    def __init__(self, sysid: int, compid: int) -> None:
+        self.mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+
+    def pack(self, msg: Any) -> bytes:
+        frame = bytes(msg.pack(self.mav))
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return frame
+
+
+def write_profile(overrides: dict[str, str], directory: str) -> str:
+    """A copy of params/default.toml with `section.key` values replaced (TOML text given verbatim)."""
+    section = ""
+    lines = []
+    for line in DEFAULT_PROFILE.read_text(encoding="utf-8").splitlines():
+        m = re.match(r"\s*\[(\w+)\]", line)
+        if m:
+            section = m.group(1)
+        kv = re.match(r"\s*#?\s*(\w+)\s*=", line)
+        if kv and f"{section}.{kv.group(1)}" in overrides:
+            line = f"{kv.group(1)} = {overrides[section + '.' + kv.group(1)]}"
+        lines.append(line)
+    path = os.path.join(directory, "bench.toml")
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+# ------------------------------------------------------------------------------------- messages
+
+def heartbeat_ap(armed: bool = True) -> Any:
+    base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+    return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                             base, 0, mavlink.MAV_STATE_ACTIVE, 3)
+
+
+def heartbeat_gcs() -> Any:
+    return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3)
+
+
+def body_velocity_request(t_ms: int, vx: float, yaw_rate: float) -> Any:
+    # MAV_FRAME_BODY_NED velocity + yaw rate: the request the bridge consumes and answers with an override.
+    return mavlink.MAVLink_set_position_target_local_ned_message(
+        t_ms, AP_SYS, AP_COMP, 8, 0b0000_0101_1100_0111, 0, 0, 0, vx, 0, 0, 0, 0, 0, 0, yaw_rate)
+
+
+class Telemetry:
+    """A consistent ArduPilot-like telemetry stream of a rover driving an arc (stamps from sim time)."""
+
+    V_M_S, OMEGA_RAD_S, TRACK_M = 0.4, 0.2, 0.30
+
+    def __init__(self) -> None:
+        self.packer = Packer(AP_SYS, AP_COMP)
+
+    def _state(self, t_s: float) -> tuple[float, float, float]:
+        left = (self.V_M_S - self.OMEGA_RAD_S * self.TRACK_M / 2) * t_s
+        right = (self.V_M_S + self.OMEGA_RAD_S * self.TRACK_M / 2) * t_s
+        return left, right, self.OMEGA_RAD_S * t_s
+
+    def frame(self, kind: str, t_s: float) -> bytes:
+        left, right, yaw_ccw = self._state(t_s)
+        ms, us = int(t_s * 1000), int(t_s * 1e6)
+        yaw_cw = math.remainder(-yaw_ccw, 2 * math.pi)
+        msg: Any
+        if kind == "WHEEL_DISTANCE":
+            msg = mavlink.MAVLink_wheel_distance_message(us, 2, [left, right] + [0.0] * 14)
+        elif kind == "ATTITUDE":
+            msg = mavlink.MAVLink_attitude_message(ms, 0.0, 0.0, yaw_cw, 0.0, 0.0, -self.OMEGA_RAD_S)
+        elif kind == "RAW_IMU":
+            msg = mavlink.MAVLink_raw_imu_message(us, 0, 0, -1000, 0, 0, int(-self.OMEGA_RAD_S * 1000), 200, 0, 400)
+        elif kind == "SYS_STATUS":
+            msg = mavlink.MAVLink_sys_status_message(0x3F, 0x3F, 0x3F, 250, 12000, 150, 80, 0, 0, 0, 0, 0, 0)
+        elif kind == "GPS_RAW_INT":
+            msg = mavlink.MAVLink_gps_raw_int_message(us, 3, 473977420, 85455940, 100000, 90, 120, 40, 1800, 12)
+        elif kind == "VFR_HUD":
+            msg = mavlink.MAVLink_vfr_hud_message(self.V_M_S, self.V_M_S, int(math.degrees(yaw_cw)) % 360, 40,
+                                                  100.0, 0.0)
+        elif kind == "SERVO_OUTPUT_RAW":
+            msg = mavlink.MAVLink_servo_output_raw_message(us & 0xFFFFFFFF, 0, 1600, 1500, 1640, 1500, 0, 0, 0, 0)
+        elif kind == "GLOBAL_POSITION_INT":
+            msg = mavlink.MAVLink_global_position_int_message(ms, 473977420, 85455940, 100000, 0, 40, 0, 0,
+                                                              int(math.degrees(yaw_cw) * 100) % 36000)
+        elif kind == "SYSTEM_TIME":
+            msg = mavlink.MAVLink_system_time_message(int(time.time() * 1e6), ms)
+        elif kind == "HEARTBEAT":
+            msg = heartbeat_ap()
+        else:  # pragma: no cover - programming error
+            raise ValueError(kind)
+        return self.packer.pack(msg)
+
+
+FLOOD_MIX = ("ATTITUDE", "WHEEL_DISTANCE", "SYS_STATUS", "GPS_RAW_INT", "VFR_HUD", "SERVO_OUTPUT_RAW",
+             "RAW_IMU", "GLOBAL_POSITION_INT", "SYSTEM_TIME", "HEARTBEAT")
+
+
+def flood_frames(count: int, rate_hz: float, t0_s: float = 100.0) -> list[bytes]:
+    """`count` frames of the mixed telemetry, stamped as if sent at `rate_hz`."""
+    tel = Telemetry()
+    return [tel.frame(FLOOD_MIX[i % len(FLOOD_MIX)], t0_s + i / rate_hz) for i in range(count)]
+
+
+# ------------------------------------------------------------------------------------- the bridge under test
+
+_CPROFILE_MAIN = """
+import cProfile, sys, time
+from rover_bridge.cli import main
+pr = cProfile.Profile(time.process_time)
+pr.enable()
+try:
+    code = main(sys.argv[1:])
+finally:
+    pr.disable()
+    pr.dump_stats({path!r})
+sys.exit(code)
+"""
+
+
+class Bridge:
+    """`python -m rover_bridge run` with both links `udpin:` so the harness sockets are its peers."""
+
+    def __init__(self, profile_path: str, workdir: str, name: str = "bridge", root: Path = REPO) -> None:
+        self.name = name
+        self.ap_port, self.gcs_port = free_udp_port(), free_udp_port()
+        self.ap_addr, self.gcs_addr = (LOCAL, self.ap_port), (LOCAL, self.gcs_port)
+        self.stats_path = os.path.join(workdir, f"{name}-stats.json")
+        self.log_path = os.path.join(workdir, f"{name}.log")
+        self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
+        # BENCH_CPROFILE=PATH runs the bridge of this tree under cProfile timed in CPU time (not wall
+        # time, which on a busy machine charges other processes' time slices to whatever was running).
+        prof = os.environ.get("BENCH_CPROFILE") if root == REPO else None
+        python = [sys.executable, *(["-c", _CPROFILE_MAIN.format(path=prof)] if prof else ["-m", "rover_bridge"])]
+        self.proc = subprocess.Popen(
+            [*python, "run", "--params", profile_path,
+             "--autopilot", f"udpin:{LOCAL}:{self.ap_port}", "--gcs", f"udpin:{LOCAL}:{self.gcs_port}",
+             "--stats-json", self.stats_path],
+            stdout=self._log, stderr=subprocess.STDOUT, cwd=root, env=bridge_env(root))
+
+    def wait_up(self, ap: socket.socket, gcs: socket.socket, timeout_s: float = 60.0) -> None:
+        """Introduce both harness sockets (udpin learns its peers) until the bridge talks to both."""
+        AUTOPILOT_SOCKETS.add(ap)
+        hb_ap, hb_gcs = Packer(AP_SYS, AP_COMP), Packer(GCS_SYS, GCS_COMP)
+        deadline = time.monotonic() + timeout_s
+        got_ap = got_gcs = False
+        next_hb = 0.0
+        while not (got_ap and got_gcs):
+            now = time.monotonic()
+            if now > deadline or self.proc.poll() is not None:
+                raise RuntimeError(f"bridge did not come up; see {self.log_path}")
+            # Paced by the clock, not by replies: the bridge forwards each GCS heartbeat to the
+            # autopilot socket, and answering every wake-up with another pair feeds a ping-pong.
+            if now >= next_hb:
+                ap.sendto(hb_ap.pack(heartbeat_ap()), self.ap_addr)
+                gcs.sendto(hb_gcs.pack(heartbeat_gcs()), self.gcs_addr)
+                next_hb = now + 0.1
+            select.select([ap, gcs], [], [], 0.1)
+            got_ap = got_ap or drain(ap) > 0
+            got_gcs = got_gcs or drain(gcs) > 0
+        settle = time.monotonic() + 0.5  # let it work off what start-up queued
+        while (now := time.monotonic()) < settle:
+            select.select([ap, gcs], [], [], settle - now)
+            drain(ap)
+            drain(gcs)
+
+    def cpu_s(self) -> float:
+        """utime + stime of the bridge process so far, seconds."""
+        user, system = self.cpu_split_s()
+        return user + system
+
+    def cpu_split_s(self) -> tuple[float, float]:
+        """(utime, stime) of the bridge process so far, seconds."""
+        fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        tick = os.sysconf("SC_CLK_TCK")
+        return int(fields[11]) / tick, int(fields[12]) / tick
+
+    def rss_kb(self) -> int:
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+        raise RuntimeError("no VmRSS")
+
+    def stop(self) -> dict[str, Any]:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self._log.close()
+        try:
+            stats: dict[str, Any] = json.loads(Path(self.stats_path).read_text())
+        except (OSError, ValueError):
+            stats = {}
+        return stats
+
+
+def bridge_env(root: Path) -> dict[str, str]:
+    """Environment that makes `python -m rover_bridge` import the package under `root` (for --base)."""
+    env = dict(os.environ)
+    if root != REPO:
+        env["PYTHONPATH"] = str(root)
+    return env
+
+
+def bridges(args: argparse.Namespace, profile_path: str, workdir: str) -> list[Bridge]:
+    """The bridge of this tree, and with --base DIR the one of another tree (e.g. a `git archive` of
+    the previous commit) measured alongside it in the same run."""
+    out = [Bridge(profile_path, workdir, "bridge")]
+    if getattr(args, "base", None):
+        out.append(Bridge(profile_path, workdir, "base", root=Path(args.base).resolve()))
+    return out
+
+
+class Heartbeats:
+    """Keeps the fake autopilot's (and GCS's) 1 Hz heartbeat going from inside a measuring loop."""
+
+    def __init__(self, ap: socket.socket, bridge: Bridge, gcs: socket.socket | None = None) -> None:
+        self.ap, self.gcs, self.bridge = ap, gcs, bridge
+        self.ap_packer, self.gcs_packer = Packer(AP_SYS, AP_COMP), Packer(GCS_SYS, GCS_COMP)
+        self.next_s = 0.0
+
+    def poll(self, now_s: float) -> None:
+        if now_s >= self.next_s:
+            self.ap.sendto(self.ap_packer.pack(heartbeat_ap()), self.bridge.ap_addr)
+            if self.gcs is not None:
+                self.gcs.sendto(self.gcs_packer.pack(heartbeat_gcs()), self.bridge.gcs_addr)
+            self.next_s = now_s + 0.5
+
+
+def print_table(title: str, header: list[str], rows: list[list[Any]]) -> None:
+    print(f"\n# {title}")
+    cells = [header] + [[f"{c:.3f}" if isinstance(c, float) else str(c) for c in row] for row in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    for r in cells:
+        print("  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))))
+
+
+def self_cmd(*args: str) -> list[str]:
+    return [sys.executable, str(Path(__file__).resolve()), *args]
+
+
+# ------------------------------------------------------------------------------------- helper processes
+
+def echo_main(port: int) -> None:
+    """A plain pymavlink UDP echo: parse every datagram with pymavlink and send the frame back."""
+    from rover_bridge.mav import mavutil
+    conn: Any = mavutil.mavlink_connection(f"udpin:{LOCAL}:{port}", dialect="ardupilotmega")
+    print("ready", flush=True)
+    while True:
+        select.select([conn.fd], [], [], 1.0)
+        while (m := conn.recv_msg()) is not None:
+            conn.write(m.get_msgbuf())
+
+
+def flood_main(port: int, rate_hz: float, seconds: float) -> None:
+    """A GCS sending `rate_hz` non-request messages (forwarded by the bridge) in 1 ms slots."""
+    packer = Packer(GCS_SYS, GCS_COMP)
+    kinds = [
+        mavlink.MAVLink_param_request_read_message(AP_SYS, AP_COMP, b"WP_SPEED", -1),
+        mavlink.MAVLink_timesync_message(0, 12345),
+        mavlink.MAVLink_system_time_message(int(time.time() * 1e6), 0),
+        mavlink.MAVLink_named_value_float_message(0, b"gcs", 1.0),
+    ]
+    frames = [packer.pack(kinds[i % len(kinds)]) for i in range(1024)]
+    sock = udp_socket()
+    dest = (LOCAL, port)
+    start = time.monotonic()
+    sent = 0
+    while (now := time.monotonic()) < start + seconds:
+        due = int((now - start) * rate_hz)
+        while sent < due:
+            sock.sendto(frames[sent % len(frames)], dest)
+            sent += 1
+        time.sleep(0.001)
+    print(sent, flush=True)
+
+
+# ------------------------------------------------------------------------------------- 1. latency
+
+def wait_for(sock: socket.socket, want: Callable[[bytes], bool], timeout_s: float) -> float | None:
+    """Kernel receive time of the first datagram on `sock` that `want`s, or None on timeout."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        while (got := recv_stamped(sock)) is not None:
+            if want(got[0]):
+                return got[1]
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return None
+        select.select([sock], [], [], left)
+
+
+def bench_latency(args: argparse.Namespace) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        under_test = bridges(args, str(DEFAULT_PROFILE), tmp)
+        echo_port = free_udp_port()
+        echo = subprocess.Popen(self_cmd("_echo", str(echo_port)), stdout=subprocess.PIPE, cwd=REPO)
+        socks = [(udp_socket(True), udp_socket()) for _ in under_test]
+        echo_sock = udp_socket(True)
+        stats: list[dict[str, Any]] = []
+        is_override: Callable[[bytes], bool] = lambda f: msg_id(f) == MSG_OVERRIDE  # noqa: E731
+        any_frame: Callable[[bytes], bool] = lambda f: True  # noqa: E731
+        # (name, send socket, destination, receive socket, which frames count as the answer)
+        paths = [(f"{br.name}: request -> override", gcs, br.gcs_addr, ap, is_override)
+                 for br, (ap, gcs) in zip(under_test, socks, strict=True)]
+        paths.append(("pymavlink echo: round trip", echo_sock, (LOCAL, echo_port), echo_sock, any_frame))
+        samples: list[list[float]] = [[] for _ in paths]
+        lost = [0] * len(paths)
+        try:
+            assert echo.stdout is not None
+            echo.stdout.readline()
+            for br, (ap, gcs) in zip(under_test, socks, strict=True):
+                br.wait_up(ap, gcs)
+            beats = [Heartbeats(ap, br, gcs) for br, (ap, gcs) in zip(under_test, socks, strict=True)]
+            packer = Packer(GCS_SYS, GCS_COMP)
+            next_slot = time.monotonic()
+            for i in range(args.requests + 50):  # the first 50 warm up (caches, branch state)
+                now = time.monotonic()
+                for hb in beats:
+                    hb.poll(now)
+                for _ap, gcs in socks:
+                    drain(gcs)
+                frame = packer.pack(body_velocity_request(i, 0.3 + 0.1 * (i % 3), 0.0))
+                k = i % len(paths)  # rotate who goes first: no systematic bias from the order
+                for which in [*range(k, len(paths)), *range(k)]:
+                    _name, tx, dest, rx, want = paths[which]
+                    t0 = time.time()
+                    tx.sendto(frame, dest)
+                    t1 = wait_for(rx, want, 0.5)
+                    if i < 50:
+                        continue
+                    if t1 is None:
+                        lost[which] += 1
+                    else:
+                        samples[which].append((t1 - t0) * 1e6)
+                next_slot += args.interval_ms / 1000.0
+                pause = next_slot - time.monotonic()
+                if pause > 0:
+                    time.sleep(pause)
+                for ap, _gcs in socks:
+                    drain(ap)
+        finally:
+            echo.kill()
+            echo.wait()
+            stats = [br.stop() for br in under_test]
+            for pair in socks:
+                for sock in pair:
+                    sock.close()
+            echo_sock.close()
+    rows = [[name, len(xs), n_lost, pct(xs, 50), pct(xs, 99), max(xs)]
+            for (name, *_rest), xs, n_lost in zip(paths, samples, lost, strict=True)]
+    print_table(f"1. latency, {args.requests} requests, one every {args.interval_ms} ms, microseconds "
+                "(kernel receive stamps)", ["path", "n", "lost", "p50_us", "p99_us", "max_us"], rows)
+    echo_p99 = pct(samples[-1], 99)
+    for (name, *_rest), xs in zip(paths[:-1], samples[:-1], strict=True):
+        p99 = pct(xs, 99)
+        ratio = p99 / echo_p99
+        print(f"{name.split(':')[0]}: p99 / echo p99 = {ratio:.2f}  (target: p99 <= 1000 us "
+              f"[{'met' if p99 <= 1000 else 'MISSED'}], <= 3x echo [{'met' if ratio <= 3 else 'MISSED'}])")
+    for br, st in zip(under_test, stats, strict=True):
+        print(f"{br.name} counters: accepted {st.get('command', {}).get('requests.accepted')}, "
+              f"outputs {st.get('command', {}).get('outputs.sent')}")
+
+
+# ------------------------------------------------------------------------------------- 2. throughput
+
+def offer(bridge: Bridge, ap: socket.socket, gcs: socket.socket, frames: list[bytes],
+          rate_hz: float | None) -> tuple[int, int, float]:
+    """Send `frames` to the bridge at `rate_hz` (None: as fast as possible) in 1 ms slots; count
+    the forwarded ones arriving at the GCS socket. Returns (sent, received, seconds spent sending)."""
+    dest = bridge.ap_addr
+    received = 0
+    n = len(frames)
+    sent = 0
+    buf = bytearray(2048)
+
+    def collect() -> int:
+        got = 0
+        while True:
+            try:
+                k = gcs.recv_into(buf)
+            except BlockingIOError:
+                return got
+            if k > 6 and buf[5] == AP_SYS and buf[6] == AP_COMP:
+                got += 1
+    start = time.monotonic()
+    if rate_hz is None:
+        for f in frames:
+            ap.sendto(f, dest)
+            sent += 1
+            if sent % 64 == 0:
+                received += collect()
+    else:
+        while sent < n:
+            due = min(n, int((time.monotonic() - start) * rate_hz) + 1)
+            while sent < due:
+                ap.sendto(frames[sent], dest)
+                sent += 1
+            received += collect()
+            time.sleep(0.0005)
+    spent = time.monotonic() - start
+    quiet_until = time.monotonic() + 0.3
+    while time.monotonic() < quiet_until:
+        select.select([gcs], [], [], 0.05)
+        got = collect()
+        if got:
+            received += got
+            quiet_until = time.monotonic() + 0.3
+    drain(ap)
+    return sent, received, spent
+
+
+def parse_rate(frames: list[bytes]) -> float:
+    """pymavlink's own parse_buffer, one datagram at a time (as a UDP receiver must), messages/s."""
+    mav = mavlink.MAVLink(None)
+    mav.robust_parsing = True  # as the bridge's links parse
+    t0 = time.perf_counter()
+    n = 0
+    for f in frames:
+        got = mav.parse_buffer(f)
+        n += len(got) if got else 0
+    return n / (time.perf_counter() - t0)
+
+
+def zero_loss_search(bridge: Bridge, ap: socket.socket, gcs: socket.socket, args: argparse.Namespace,
+                     frames_for: Callable[[float], list[bytes]], rows: list[list[Any]]) -> float:
+    """Raise the offered rate by 1.5x until something is lost, then bisect; the best rate without loss."""
+    best_ok, lo, hi = 0.0, 0.0, None
+    rate = args.start_hz
+    for _ in range(args.max_steps):
+        sent, received, spent = offer(bridge, ap, gcs, frames_for(rate), rate)
+        rows.append([bridge.name, f"{rate:.0f}", sent, received, sent - received, sent / spent])
+        if sent == received:
+            best_ok, lo = rate, rate
+        else:
+            hi = rate
+        if hi is None:
+            rate *= 1.5
+        elif hi - lo <= max(250.0, 0.05 * hi):
+            break
+        else:
+            rate = (lo + hi) / 2
+    return best_ok
+
+
+def bench_throughput(args: argparse.Namespace) -> None:
+    step_s = args.step_s
+    rows: list[list[Any]] = []
+    parse_rates: list[float] = []
+    best: dict[str, list[float]] = {}
+    stats: list[dict[str, Any]] = []
+
+    def frames_for(rate: float) -> list[bytes]:
+        frames = flood_frames(int(rate * step_s), rate)
+        parse_rates.append(parse_rate(frames))  # the raw rate, on these very bytes, between bridge runs
+        return frames
+
+    with tempfile.TemporaryDirectory() as tmp:
+        under_test = bridges(args, str(DEFAULT_PROFILE), tmp)
+        socks = [(udp_socket(), udp_socket()) for _ in under_test]
+        try:
+            for br, (ap, gcs) in zip(under_test, socks, strict=True):
+                br.wait_up(ap, gcs)
+                offer(br, ap, gcs, flood_frames(2000, 2000.0), 2000.0)  # warm up
+            for _rep in range(args.repeats):
+                for br, (ap, gcs) in zip(under_test, socks, strict=True):
+                    best.setdefault(br.name, []).append(zero_loss_search(br, ap, gcs, args, frames_for, rows))
+            for br, (ap, gcs) in zip(under_test, socks, strict=True):
+                frames = frames_for(60_000.0)
+                sent, received, spent = offer(br, ap, gcs, frames, None)
+                rows.append([br.name, "max", sent, received, sent - received, sent / spent])
+        finally:
+            stats = [br.stop() for br in under_test]
+            for pair in socks:
+                for sock in pair:
+                    sock.close()
+    print_table(f"2. throughput: mixed autopilot telemetry ({len(FLOOD_MIX)} types, one per datagram) -> bridge -> "
+                f"GCS, {step_s:.0f} s per step",
+                ["bridge", "offered_hz", "sent", "received", "lost", "achieved_send_hz"], rows)
+    raw = statistics.median(parse_rates)
+    print(f"pymavlink parse_buffer (same frames, same run): median {raw:,.0f} msg/s "
+          f"(min {min(parse_rates):,.0f}, max {max(parse_rates):,.0f}, {len(parse_rates)} runs)")
+    for name, rates in best.items():
+        share = statistics.median(rates) / raw
+        print(f"{name}: highest zero-loss rate, median of {len(rates)}: {statistics.median(rates):,.0f} msg/s "
+              f"({', '.join(f'{r:,.0f}' for r in rates)}) = {share:.0%} of raw parse "
+              f"(target >= 40% [{'met' if share >= 0.4 else 'MISSED'}])")
+    for br, st in zip(under_test, stats, strict=True):
+        print(f"{br.name} link counters:", json.dumps(st.get("links", {})))
+
+
+# ------------------------------------------------------------------------------------- 3. cpu
+
+NOMINAL_AP = (("WHEEL_DISTANCE", 50.0), ("ATTITUDE", 50.0), ("RAW_IMU", 50.0), ("VFR_HUD", 10.0),
+              ("GLOBAL_POSITION_INT", 10.0), ("SERVO_OUTPUT_RAW", 10.0), ("GPS_RAW_INT", 5.0),
+              ("SYS_STATUS", 2.0), ("SYSTEM_TIME", 2.0), ("HEARTBEAT", 1.0))
+
+
+def nominal_schedule(seconds: float, t0_s: float) -> Iterator[tuple[float, str]]:
+    """(time offset, what) events of the nominal load, in time order."""
+    events: list[tuple[float, str]] = []
+    for kind, hz in NOMINAL_AP:
+        events += [(k / hz, kind) for k in range(int(seconds * hz))]
+    events += [(k / 50.0 + 0.003, "REQUEST") for k in range(int(seconds * 50))]
+    events += [(k / 1.0 + 0.5, "GCS_HEARTBEAT") for k in range(int(seconds))]
+    events += [(k / 5.0 + 0.1, "GCS_TIMESYNC") for k in range(int(seconds * 5))]
+    events.sort()
+    yield from events
+
+
+def bench_cpu(args: argparse.Namespace) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        profile = write_profile({"command.rate_hz": "50.0"}, tmp)
+        under_test = bridges(args, profile, tmp)
+        socks = [(udp_socket(), udp_socket()) for _ in under_test]
+        tel = Telemetry()
+        gcs_packer = Packer(GCS_SYS, GCS_COMP)
+        samples: list[list[tuple[float, float, float]]] = [[] for _ in under_test]
+        stats: list[dict[str, Any]] = []
+        all_socks = [s for pair in socks for s in pair]
+        try:
+            for br, (ap, gcs) in zip(under_test, socks, strict=True):
+                br.wait_up(ap, gcs)
+            total = args.warmup_s + args.seconds
+            start = time.monotonic()
+            measure_at = start + args.warmup_s
+            measuring = False
+            for offset, what in nominal_schedule(total, 0.0):
+                target = start + offset
+                while (now := time.monotonic()) < target:
+                    select.select(all_socks, [], [], target - now)
+                    for sock in all_socks:
+                        drain(sock)
+                if not measuring and now >= measure_at:
+                    for br, smp in zip(under_test, samples, strict=True):
+                        smp.append((time.monotonic(), *br.cpu_split_s()))
+                    measuring = True
+                # The same bytes go to every bridge under test (sent one after the other).
+                if what == "REQUEST":
+                    yaw_rate = 0.2 * math.sin(offset)
+                    frame = gcs_packer.pack(body_velocity_request(int(offset * 1000), 0.4, yaw_rate))
+                elif what == "GCS_HEARTBEAT":
+                    frame = gcs_packer.pack(heartbeat_gcs())
+                elif what == "GCS_TIMESYNC":
+                    frame = gcs_packer.pack(mavlink.MAVLink_timesync_message(0, int(offset * 1e9)))
+                else:
+                    frame = tel.frame(what, 100.0 + offset)
+                to_gcs_port = what.startswith("GCS_") or what == "REQUEST"
+                for br, (ap, gcs) in zip(under_test, socks, strict=True):
+                    if to_gcs_port:
+                        gcs.sendto(frame, br.gcs_addr)
+                    else:
+                        ap.sendto(frame, br.ap_addr)
+            for br, smp in zip(under_test, samples, strict=True):
+                smp.append((time.monotonic(), *br.cpu_split_s()))
+        finally:
+            stats = [br.stop() for br in under_test]
+            for sock in all_socks:
+                sock.close()
+    rows = []
+    for br, smp, st in zip(under_test, samples, stats, strict=True):
+        (t0, u0, s0), (t1, u1, s1) = smp[0], smp[-1]
+        cpu_pct = (u1 + s1 - u0 - s0) / (t1 - t0) * 100.0
+        est, cmd = st.get("estimate", {}), st.get("command", {})
+        rows.append([br.name, f"{t1 - t0:.1f}", f"{u1 - u0:.2f}", f"{s1 - s0:.2f}", f"{cpu_pct:.2f}",
+                     "met" if cpu_pct < 3 else "MISSED",
+                     est.get("odometry_sent"), cmd.get("outputs.sent"), cmd.get("requests.accepted"),
+                     st.get("runner", {}).get("forwarded"), st.get("runner", {}).get("ticks")])
+    print_table("3. CPU at nominal load: WHEEL_DISTANCE, ATTITUDE, RAW_IMU 50 Hz; requests 50 Hz, command.rate_hz 50; "
+                "ODOMETRY 30 Hz; other telemetry ~40 Hz; GCS 6 Hz. Target < 3% of one core",
+                ["bridge", "wall_s", "user_s", "sys_s", "cpu_%_core", "target", "odometry", "outputs", "accepted",
+                 "forwarded", "ticks"],
+                rows)
+
+
+# ------------------------------------------------------------------------------------- 4. regularity
+
+def override_periods(bridge: Bridge, ap: socket.socket, gcs: socket.socket, seconds: float) -> list[float]:
+    beats = Heartbeats(ap, bridge, gcs)
+    stamps: list[float] = []
+    end = time.monotonic() + seconds
+    while (now := time.monotonic()) < end:
+        beats.poll(now)
+        select.select([ap], [], [], 0.05)
+        while (got := recv_stamped(ap)) is not None:
+            if msg_id(got[0]) == MSG_OVERRIDE:
+                stamps.append(got[1])
+        drain(gcs)
+    return [b - a for a, b in itertools.pairwise(stamps)]
+
+
+def bench_regularity(args: argparse.Namespace) -> None:
+    rate_hz = 50.0
+    period = 1.0 / rate_hz
+    rows: list[list[Any]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        profile = write_profile({"command.rate_hz": f"{rate_hz}"}, tmp)
+        bridge = Bridge(profile, tmp)
+        ap, gcs = udp_socket(True), udp_socket()
+        try:
+            bridge.wait_up(ap, gcs)
+            override_periods(bridge, ap, gcs, 1.0)  # settle
+            for rep in range(args.repeats):
+                for flood in (False, True):
+                    flooder = None
+                    if flood:
+                        flooder = subprocess.Popen(
+                            self_cmd("_flood", str(bridge.gcs_port), str(args.flood_hz), str(args.seconds + 0.5)),
+                            stdout=subprocess.PIPE, cwd=REPO)
+                        time.sleep(0.3)
+                    periods = override_periods(bridge, ap, gcs, args.seconds)
+                    flood_sent = ""
+                    if flooder is not None:
+                        out, _ = flooder.communicate(timeout=30)
+                        flood_sent = f"{int(out.decode().strip() or 0) / (args.seconds + 0.5):.0f}"
+                    dev_ms = [abs(p - period) * 1e3 for p in periods]
+                    rows.append([rep + 1, "flood" if flood else "quiet", flood_sent or "-", len(periods),
+                                 statistics.mean(periods) * 1e3, pct(dev_ms, 50), pct(dev_ms, 99), max(dev_ms)])
+        finally:
+            stats = bridge.stop()
+            ap.close()
+            gcs.close()
+    print_table(f"4. override period at command.rate_hz = {rate_hz:.0f} (nominal {period * 1e3:.0f} ms), idle "
+                f"(neutral refresh), {args.seconds:.0f} s per run",
+                ["run", "gcs", "flood_msg_s", "periods", "mean_ms", "p50_dev_ms", "p99_dev_ms", "max_dev_ms"], rows)
+    for cond in ("quiet", "flood"):
+        p99s: list[float] = [r[6] for r in rows if r[1] == cond]
+        print(f"{cond}: median of p99 deviation {statistics.median(p99s):.3f} ms "
+              f"(target < 2 ms [{'met' if statistics.median(p99s) < 2 else 'MISSED'}])")
+    print(f"bridge forwarded {stats.get('runner', {}).get('forwarded')} frames")
+
+
+# ------------------------------------------------------------------------------------- 5. memory
+
+def bench_memory(args: argparse.Namespace) -> None:
+    total = args.messages
+    rate = args.rate_hz
+    with tempfile.TemporaryDirectory() as tmp:
+        bridge = Bridge(str(DEFAULT_PROFILE), tmp)
+        ap, gcs = udp_socket(), udp_socket()
+        tel = Telemetry()
+        gcs_packer = Packer(GCS_SYS, GCS_COMP)
+        rss: list[tuple[int, int]] = []
+        try:
+            bridge.wait_up(ap, gcs)
+            sent = 0
+            start = time.monotonic()
+            checkpoints = {args.warmup}
+            checkpoints.update(args.warmup + k * (total // 4) for k in range(1, 5))
+            request = 0
+            # Prepacked request frames (10 distinct) keep the harness fast; the core sees distinct speeds.
+            requests = [gcs_packer.pack(body_velocity_request(k, 0.1 * k, 0.05 * k)) for k in range(10)]
+            while sent < args.warmup + total:
+                due = min(args.warmup + total, int((time.monotonic() - start) * rate) + 1)
+                while sent < due:
+                    if sent % 50 == 0:  # 2% control requests from the GCS, the rest autopilot telemetry
+                        gcs.sendto(requests[request % 10], bridge.gcs_addr)
+                        request += 1
+                    else:
+                        sim_t = 100.0 + sent / rate
+                        ap.sendto(tel.frame(FLOOD_MIX[sent % len(FLOOD_MIX)], sim_t), bridge.ap_addr)
+                    sent += 1
+                    if sent in checkpoints:
+                        time.sleep(0.2)  # let the bridge drain before reading its RSS
+                        rss.append((sent, bridge.rss_kb()))
+                drain(gcs)
+                drain(ap)
+                time.sleep(0.001)
+        finally:
+            stats = bridge.stop()
+            ap.close()
+            gcs.close()
+    rx = sum(v.get("rx", 0) for v in stats.get("links", {}).values())
+    base = rss[0][1]
+    rows = [[n, kb / 1024.0, (kb - base) / 1024.0] for n, kb in rss]
+    print_table(f"5. memory: bridge VmRSS while {total:,} messages (2% requests, rest mixed telemetry) arrive at "
+                f"{rate:,.0f} msg/s after {args.warmup:,} warm-up", ["messages_sent", "rss_mb", "growth_mb"], rows)
+    growth = (rss[-1][1] - base) / 1024.0
+    print(f"growth over {total:,} messages: {growth:.2f} MB (target < 5 MB [{'met' if growth < 5 else 'MISSED'}]); "
+          f"bridge received {rx:,} frames, rx_bad {sum(v.get('rx_bad', 0) for v in stats.get('links', {}).values())}")
+
+
+# ------------------------------------------------------------------------------------- 6. start-up
+
+def bench_startup(args: argparse.Namespace) -> None:
+    times: list[float] = []
+    for _ in range(args.repeats):
+        sock = udp_socket()
+        port = sock.getsockname()[1]
+        t0 = time.monotonic()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "rover_bridge", "run", "--params", str(DEFAULT_PROFILE),
+             "--autopilot", f"udpout:{LOCAL}:{port}", "--gcs", "none"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)
+        got = None
+        deadline = t0 + 60
+        while got is None and time.monotonic() < deadline:
+            select.select([sock], [], [], 0.5)
+            while (d := recv_stamped(sock)) is not None:
+                if msg_id(d[0]) == MSG_HEARTBEAT and d[0][6] == BRIDGE_COMP:
+                    got = time.monotonic()
+                    break
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=20)
+        sock.close()
+        if got is not None:
+            times.append(got - t0)
+    # Import cost of what `rover_bridge run` imports, from python -X importtime: self time summed by
+    # top-level package (these add up to the total), and the cumulative time of a few notable subtrees.
+    imp = subprocess.run([sys.executable, "-X", "importtime", "-c", "import rover_bridge.cli as c; c.build_parser()"],
+                         capture_output=True, text=True, cwd=REPO)
+    self_by_pkg: dict[str, int] = {}
+    cumulative: dict[str, int] = {}
+    for line in imp.stderr.splitlines():
+        m = re.match(r"import time:\s+(\d+) \|\s+(\d+) \|\s*(\S+)", line)
+        if m:
+            name = m.group(3)
+            top = name.split(".")[0]
+            self_by_pkg[top] = self_by_pkg.get(top, 0) + int(m.group(1))
+            cumulative.setdefault(name, int(m.group(2)))
+    total_us = sum(self_by_pkg.values())
+    rows = [["process start -> first HEARTBEAT", len(times), statistics.median(times), min(times), max(times)]]
+    print_table("6. start-up (seconds)", ["what", "runs", "median_s", "min_s", "max_s"], rows)
+    top = sorted(self_by_pkg.items(), key=lambda kv: -kv[1])[:args.top]
+    print_table(f"   import time by top-level package (python -X importtime, self times summed; total "
+                f"{total_us / 1000.0:.0f} ms, one run)", ["package", "ms", "share"],
+                [[k, v / 1000.0, f"{v / total_us:.0%}"] for k, v in top])
+    notable = ["filterpy", "filterpy.stats", "scipy.stats", "scipy.linalg", "matplotlib", "numpy", "pymavlink.mavutil",
+               "pymavlink.dialects.v20.ardupilotmega", "rover_bridge.estimator", "rover_bridge.commands.demo"]
+    print_table("   cumulative import time of notable subtrees (ms; a subtree already imported elsewhere counts 0)",
+                ["module", "ms"], [[n, cumulative[n] / 1000.0] for n in notable if n in cumulative])
+
+
+# ------------------------------------------------------------------------------------- CLI
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("latency")
+    p.add_argument("--requests", type=int, default=5000)
+    p.add_argument("--interval-ms", type=float, default=2.0, help="time between requests (default %(default)s)")
+    p = sub.add_parser("throughput")
+    p.add_argument("--start-hz", type=float, default=4000.0)
+    p.add_argument("--step-s", type=float, default=2.0)
+    p.add_argument("--max-steps", type=int, default=8)
+    p.add_argument("--repeats", type=int, default=3)
+    p = sub.add_parser("cpu")
+    p.add_argument("--seconds", type=float, default=20.0)
+    p.add_argument("--warmup-s", type=float, default=3.0)
+    p = sub.add_parser("regularity")
+    p.add_argument("--seconds", type=float, default=8.0)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--flood-hz", type=float, default=5000.0)
+    p = sub.add_parser("memory")
+    p.add_argument("--messages", type=int, default=1_000_000)
+    p.add_argument("--warmup", type=int, default=50_000)
+    p.add_argument("--rate-hz", type=float, default=15_000.0)
+    p = sub.add_parser("startup")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--top", type=int, default=10)
+    all_p = sub.add_parser("all")
+    for sp in (sub.choices["latency"], sub.choices["throughput"], sub.choices["cpu"], all_p):
+        sp.add_argument("--base", metavar="DIR", help="also measure the bridge of another source tree, side by side")
+    p = sub.add_parser("_echo")
+    p.add_argument("port", type=int)
+    p = sub.add_parser("_flood")
+    p.add_argument("port", type=int)
+    p.add_argument("rate", type=float)
+    p.add_argument("seconds", type=float)
+    args = parser.parse_args(argv)
+    if args.cmd == "_echo":
+        echo_main(args.port)
+    elif args.cmd == "_flood":
+        flood_main(args.port, args.rate, args.seconds)
+    elif args.cmd == "all":
+        for name in ("latency", "throughput", "cpu", "regularity", "memory", "startup"):
+            main([name, "--base", args.base] if args.base and name in ("latency", "throughput", "cpu") else [name])
+    else:
+        {"latency": bench_latency, "throughput": bench_throughput, "cpu": bench_cpu, "regularity": bench_regularity,
+         "memory": bench_memory, "startup": bench_startup}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    main()
