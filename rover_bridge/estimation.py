@@ -193,6 +193,7 @@ class EstimateCore:
             "gyro_samples": 0,
             "gyro_rejected": 0,
             "gyro_switches": 0,
+            "gyro_stale": 0,
             "wheel_rejected": 0,
             "wheel_slip": 0,
             "wheel_stationary": 0,
@@ -212,6 +213,7 @@ class EstimateCore:
         self._ap_last_boot_s: float | None = None
         self._gyro_source: str | None = None if est.gyro_source == "auto" else est.gyro_source
         self._gyro_last_seen: dict[str, float] = {}
+        self._gyro_last_t: dict[str, float] = {}  # newest mapped stamp fused per gyro source
         # Gyro samples since the last wheel step (with the one before it), for the slip test.
         self._gyro_window: list[float] = []
         self._gyro_last: tuple[float, float] | None = None  # (now_s, omega)
@@ -425,6 +427,13 @@ class EstimateCore:
         omega = frames.omega_from_mavlink_yaw_rate(yaw_rate_cw_rad_s)
         t = self._gyro_clocks[source].map(stamp_s, now_s)
         self._stream_arrival(source.upper(), now_s)
+        last_t = self._gyro_last_t.get(source)
+        if last_t is not None and t <= last_t:
+            # Reordered or duplicated (UDP): fusing it as the newest rate would also make the EKF's
+            # trapezoid yaw correction count the interval since that old stamp twice. Drop, as for wheels.
+            self._counters["gyro_stale"] += 1
+            return []
+        self._gyro_last_t[source] = t
         if not math.isfinite(omega):
             self._counters["gyro_rejected"] += 1
             return []
