@@ -47,8 +47,8 @@ N_CAL = 8
 # Process noise densities (per second). Chosen so v and omega follow the sensors closely
 # (a rover changes speed far faster than the filter would believe otherwise); bias and
 # calibration drift slowly. Units: (m/s^2)^2 s, (rad/s^2)^2 s, (rad/s)^2/s, 1/s.
-Q_V = 1.0
-Q_OMEGA = 4.0
+Q_V = 10.0
+Q_OMEGA = 100.0
 Q_BIAS = 1e-10
 Q_CAL = 1e-10
 # Pose noise that grows with the distance driven and the angle turned (unmodelled slip,
@@ -261,6 +261,8 @@ class WheelGyroEKF:
         # Trapezoid bookkeeping between gyro samples (see update_gyro).
         self._gyro_prev: tuple[float, float] | None = None  # (time, omega after that update)
         self._turned_since_gyro_rad = 0.0
+        self._wheels_prev: tuple[float, float] | None = None  # (time, v after that update)
+        self._moved_since_wheels_m = 0.0
         self._gyro_R = np.array([[self.noise.gyro_noise_rad_s ** 2]])
         self._gate2 = self.noise.gate_sigma ** 2
         self.rejects_in_row = {"wheels": 0, "gyro": 0}
@@ -305,6 +307,7 @@ class WheelGyroEKF:
         self.ekf.P = self.ekf.F @ self.ekf.P @ self.ekf.F.T + self.ekf.Q
         self.time_s = t_s
         self._turned_since_gyro_rad += float(x[IW]) * dt
+        self._moved_since_wheels_m += float(x[IV]) * dt
 
     def extrapolate(self, t_s: float) -> tuple[Vec, Mat]:
         """State and covariance predicted to t_s, without changing the filter (for publishing)."""
@@ -416,6 +419,11 @@ class WheelGyroEKF:
             z = wheel_measurement(d_left_m, d_right_m, dt_s, L)
             R = wheel_noise(d_left_m, d_right_m, dt_s, L, self.noise)
         slip_d2 = self.slip_d2(z, R, gyro_omega_rad_s, gyro_spread_rad_s)
+        if gyro_spread_rad_s > 0.0:
+            # The wheels measure the interval's mean rate, the state is the rate at its end: while the
+            # rate changes they differ by up to the change over the interval (a spin-up is not an outlier).
+            R = R.copy()
+            R[1, 1] += gyro_spread_rad_s**2
         slip = slip_d2 > self._gate2 and not stationary
         if slip:
             R = R.copy()
@@ -434,6 +442,17 @@ class WheelGyroEKF:
         if not self._gate("wheels", gate_d2):
             return WheelUpdate(False, slip, stationary, slip_d2, d2)
         self._update(z, H, hx, R)
+        # Trapezoid for the distance, as update_gyro does for the heading: the speed moved from the
+        # last update's to this one's while the prediction used piecewise-constant speeds.
+        v_now = float(self.ekf.x[IV])
+        prev = self._wheels_prev
+        if prev is not None and 0.0 < t_s - prev[0] <= TRAPEZOID_MAX_DT_S:
+            missed = 0.5 * (prev[1] + v_now) * (t_s - prev[0]) - self._moved_since_wheels_m
+            yaw = float(self.ekf.x[IYAW])
+            self.ekf.x[IX] += math.cos(yaw) * missed
+            self.ekf.x[IY] += math.sin(yaw) * missed
+        self._wheels_prev = (t_s, v_now)
+        self._moved_since_wheels_m = 0.0
         if slip:
             # Honest velocity variance: slipping wheels overstate the speed by an unknown amount.
             self.ekf.P[IV, IV] += (SLIP_V_VAR_FACTOR - 1.0) * float(R[0, 0]) / SLIP_V_VAR_FACTOR

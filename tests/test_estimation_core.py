@@ -63,6 +63,7 @@ def _drive_twist(core: EstimateCore, v: float, w: float, seconds: float, t0: flo
     """Feed exact wheels and gyro for a constant body twist (CCW omega) at 20 Hz; return (t, distances)."""
     left, right = start
     t = t0
+    _feed(core, _attitude(t, -w), t)  # already turning at t0: a steady twist, not a step
     _feed(core, _wheels(t, left, right), t)
     for _ in range(round(seconds * 20)):
         t += 0.05
@@ -109,7 +110,8 @@ def test_odometry_signs_for_a_right_turn() -> None:
     msg = _odometry(core, t)
     assert msg.frame_id == mavlink.MAV_FRAME_LOCAL_FRD and msg.child_frame_id == mavlink.MAV_FRAME_BODY_FRD
     # 1 m along a right-hand arc of radius 1 m: x = sin 1, y right = 1 - cos 1, yaw CW = 1 rad
-    assert msg.x == pytest.approx(math.sin(1.0), abs=0.01)
+    # (x: the speed is unknown over the first interval, part of its 25 mm is not recovered)
+    assert msg.x == pytest.approx(math.sin(1.0), abs=0.02)
     assert msg.y == pytest.approx(1.0 - math.cos(1.0), abs=0.01)
     assert msg.z == 0.0
     assert msg.q[0] == pytest.approx(math.cos(0.5), abs=0.01) and msg.q[3] == pytest.approx(math.sin(0.5), abs=0.01)
@@ -206,7 +208,7 @@ def test_auto_prefers_attitude_over_raw_imu() -> None:
 def test_gyro_outlier_is_rejected_and_counted() -> None:
     core = _core()
     t, _ = _drive_twist(core, 0.5, 0.0, 2.0)
-    _feed(core, _attitude(t + 0.01, 6.0), t + 0.01)
+    _feed(core, _attitude(t + 0.01, 20.0), t + 0.01)  # 3x what the wheels can turn the rover at
     assert core.counters["gyro_rejected"] == 1
     _feed(core, _attitude(t + 0.02, 0.0), t + 0.02)
     assert core.counters["gyro_rejected"] == 1

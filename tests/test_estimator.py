@@ -142,7 +142,7 @@ def _settled(calibrate: bool = False) -> WheelGyroEKF:
 def test_gyro_outlier_rejected_and_normal_sample_accepted() -> None:
     ekf = _settled()
     omega_before = float(ekf.x[IW])
-    assert not ekf.update_gyro(2.05, 5.0)  # 5 rad/s out of nowhere, 50 ms after 0
+    assert not ekf.update_gyro(2.05, 20.0)  # 20 rad/s out of nowhere, 50 ms after 0
     assert float(ekf.x[IW]) == pytest.approx(omega_before, abs=1e-3)
     assert ekf.rejects_in_row["gyro"] == 1
     assert ekf.update_gyro(2.06, 0.01)
@@ -151,7 +151,7 @@ def test_gyro_outlier_rejected_and_normal_sample_accepted() -> None:
 
 def test_persistent_gyro_rejections_end_in_acceptance() -> None:
     ekf = _settled()
-    results = [ekf.update_gyro(2.05 + 0.01 * k, 5.0) for k in range(6)]
+    results = [ekf.update_gyro(2.05 + 0.01 * k, 20.0) for k in range(6)]
     # four rejected, the fifth in a row is taken (the filter is the likelier culprit by then)
     assert results[:5] == [False, False, False, False, True]
 
