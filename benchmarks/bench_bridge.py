@@ -740,39 +740,47 @@ def bench_regularity(args: argparse.Namespace) -> None:
     rows: list[list[Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         profile = write_profile({"command.rate_hz": f"{rate_hz}"}, tmp)
-        bridge = Bridge(profile, tmp)
-        ap, gcs = udp_socket(True), udp_socket()
+        under_test = bridges(args, profile, tmp)
+        socks = [(udp_socket(True), udp_socket()) for _ in under_test]
+        stats: list[dict[str, Any]] = []
         try:
-            bridge.wait_up(ap, gcs)
-            override_periods(bridge, ap, gcs, 1.0)  # settle
+            for br, (ap, gcs) in zip(under_test, socks, strict=True):
+                br.wait_up(ap, gcs)
             for rep in range(args.repeats):
                 for flood in (False, True):
-                    flooder = None
-                    if flood:
-                        flooder = subprocess.Popen(
-                            self_cmd("_flood", str(bridge.gcs_port), str(args.flood_hz), str(args.seconds + 0.5)),
-                            stdout=subprocess.PIPE, cwd=REPO)
-                        time.sleep(0.3)
-                    periods = override_periods(bridge, ap, gcs, args.seconds)
-                    flood_sent = ""
-                    if flooder is not None:
-                        out, _ = flooder.communicate(timeout=30)
-                        flood_sent = f"{int(out.decode().strip() or 0) / (args.seconds + 0.5):.0f}"
-                    dev_ms = [abs(p - period) * 1e3 for p in periods]
-                    rows.append([rep + 1, "flood" if flood else "quiet", flood_sent or "-", len(periods),
-                                 statistics.mean(periods) * 1e3, pct(dev_ms, 50), pct(dev_ms, 99), max(dev_ms)])
+                    # Bridges take turns (one measured at a time, the other idle), in alternating order.
+                    order = list(zip(under_test, socks, strict=True))
+                    for br, (ap, gcs) in order if rep % 2 == 0 else order[::-1]:
+                        flooder = None
+                        if flood:
+                            flooder = subprocess.Popen(
+                                self_cmd("_flood", str(br.gcs_port), str(args.flood_hz), str(args.seconds + 0.5)),
+                                stdout=subprocess.PIPE, cwd=REPO)
+                        override_periods(br, ap, gcs, 0.3)  # flooder starting; not measured
+                        periods = override_periods(br, ap, gcs, args.seconds)
+                        flood_sent = "-"
+                        if flooder is not None:
+                            out, _ = flooder.communicate(timeout=30)
+                            flood_sent = f"{int(out.decode().strip() or 0) / (args.seconds + 0.5):.0f}"
+                        dev_ms = [abs(p - period) * 1e3 for p in periods]
+                        rows.append([br.name, rep + 1, "flood" if flood else "quiet", flood_sent, len(periods),
+                                     statistics.mean(periods) * 1e3, pct(dev_ms, 50), pct(dev_ms, 99), max(dev_ms)])
         finally:
-            stats = bridge.stop()
-            ap.close()
-            gcs.close()
+            stats = [br.stop() for br in under_test]
+            for pair in socks:
+                for sock in pair:
+                    sock.close()
     print_table(f"4. override period at command.rate_hz = {rate_hz:.0f} (nominal {period * 1e3:.0f} ms), idle "
-                f"(neutral refresh), {args.seconds:.0f} s per run",
-                ["run", "gcs", "flood_msg_s", "periods", "mean_ms", "p50_dev_ms", "p99_dev_ms", "max_dev_ms"], rows)
-    for cond in ("quiet", "flood"):
-        p99s: list[float] = [r[6] for r in rows if r[1] == cond]
-        print(f"{cond}: median of p99 deviation {statistics.median(p99s):.3f} ms "
-              f"(target < 2 ms [{'met' if statistics.median(p99s) < 2 else 'MISSED'}])")
-    print(f"bridge forwarded {stats.get('runner', {}).get('forwarded')} frames")
+                f"(neutral refresh), {args.seconds:.0f} s per run; deviation = |period - {period * 1e3:.0f} ms|",
+                ["bridge", "run", "gcs", "flood_msg_s", "periods", "mean_ms", "p50_dev_ms", "p99_dev_ms",
+                 "max_dev_ms"], rows)
+    for br, st in zip(under_test, stats, strict=True):
+        for cond in ("quiet", "flood"):
+            p99s: list[float] = [r[7] for r in rows if r[0] == br.name and r[2] == cond]
+            med = statistics.median(p99s)
+            verdict = "met" if med < 2 else "MISSED"
+            print(f"{br.name} {cond}: median of p99 deviation {med:.3f} ms (target < 2 ms [{verdict}])")
+        print(f"{br.name} forwarded {st.get('runner', {}).get('forwarded')} frames")
 
 
 # ------------------------------------------------------------------------------------- 5. memory
@@ -904,7 +912,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--top", type=int, default=10)
     all_p = sub.add_parser("all")
-    for sp in (sub.choices["latency"], sub.choices["throughput"], sub.choices["cpu"], all_p):
+    for sp in (sub.choices["latency"], sub.choices["throughput"], sub.choices["cpu"], sub.choices["regularity"], all_p):
         sp.add_argument("--base", metavar="DIR", help="also measure the bridge of another source tree, side by side")
     p = sub.add_parser("_echo")
     p.add_argument("port", type=int)
@@ -918,8 +926,9 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "_flood":
         flood_main(args.port, args.rate, args.seconds)
     elif args.cmd == "all":
+        with_base = ("latency", "throughput", "cpu", "regularity")
         for name in ("latency", "throughput", "cpu", "regularity", "memory", "startup"):
-            main([name, "--base", args.base] if args.base and name in ("latency", "throughput", "cpu") else [name])
+            main([name, "--base", args.base] if args.base and name in with_base else [name])
     else:
         {"latency": bench_latency, "throughput": bench_throughput, "cpu": bench_cpu, "regularity": bench_regularity,
          "memory": bench_memory, "startup": bench_startup}[args.cmd](args)

@@ -31,6 +31,10 @@ log = logging.getLogger("rover_bridge.runner")
 
 # Longest select() sleep: bounds how late a stop request or a missed deadline can be noticed.
 MAX_SLEEP_S = 0.05
+# Frames `run()` takes from one link per pass. Between passes it reads the clock again and serves
+# due deadlines, so a flooding link delays the control output by at most this many frames (instead
+# of its whole backlog) and cannot starve the other links.
+RUN_BATCH = 4
 
 
 class TlogWriter:
@@ -60,25 +64,31 @@ class Runner:
         self.forwarded = 0
         self.consumed = 0
         self.ticks = 0
+        self.backlog = False
         self._stopped = False
 
     @property
     def endpoints(self) -> list[Endpoint]:
         return [self.autopilot, *self.gcs]
 
-    def step(self, now_s: float) -> None:
-        """Drain every link, handle every frame, then tick if a deadline is due. Never blocks."""
+    def step(self, now_s: float, max_frames: int | None = None) -> None:
+        """Drain every link (at most `max_frames` from each), handle every frame, then tick if a
+        deadline is due. Never blocks. `backlog` tells whether a link may have more frames waiting."""
+        self.backlog = False
         for ep in self.endpoints:
-            for msg in ep.read():
+            msgs = ep.read() if max_frames is None else ep.read(max_frames)
+            if max_frames is not None and len(msgs) >= max_frames:
+                self.backlog = True  # more may be queued, possibly inside the parser where select() cannot see it
+            for msg in msgs:
                 self._on_message(ep, msg, now_s)
         if now_s >= self.core.next_deadline_s(now_s):
             self.ticks += 1
             self.send_all(self.core.tick(now_s))
 
     def _on_message(self, ep: Endpoint, msg: MAVLinkMessage, now_s: float) -> None:
-        frame = msg.get_msgbuf()
+        frame = bytes(msg.get_msgbuf())  # one copy, shared by the log and every forward
         if self.tlog is not None:
-            self.tlog.write(bytes(frame))
+            self.tlog.write(frame)
         reaction = self.core.handle(Incoming(ep.role, msg, signed_ok=_signed_ok(ep, msg)), now_s)
         if reaction.consumed:
             self.consumed += 1
@@ -86,7 +96,7 @@ class Runner:
             targets = self.gcs if ep.role is Link.AUTOPILOT else [self.autopilot, *self.gcs]
             for other in targets:
                 if other is not ep:
-                    other.write_frame(bytes(frame))
+                    other.write_frame(frame)
                     self.forwarded += 1
         if reaction.out:
             self.send_all(reaction.out)
@@ -112,8 +122,9 @@ class Runner:
         extra = [wake_fd] if wake_fd is not None else []
         while not should_stop():
             now = clock()
-            self.step(now)
-            self.wait(now, clock, extra)
+            self.step(now, RUN_BATCH)
+            if not self.backlog:
+                self.wait(now, clock, extra)
             if wake_fd is not None:
                 _drain(wake_fd)
 
