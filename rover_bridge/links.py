@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import socket
 import struct
 from typing import Any
 
@@ -18,6 +19,8 @@ from rover_bridge.wire import Link
 
 log = logging.getLogger("rover_bridge.links")
 
+# Receive buffer asked for UDP links (the kernel caps it at net.core.rmem_max).
+UDP_RCVBUF_BYTES = 1 << 20
 # Bytes asked of a stream link (tcp, serial) per read; a UDP link returns one whole datagram anyway.
 RECV_CHUNK = 4096
 # What decoding may raise on hostile input; caught per frame, counted as bad, never fatal.
@@ -68,6 +71,12 @@ class Endpoint:
             raise ConfigError([f"{self.url}: cannot open ({exc.strerror or exc})"]) from exc
         if self.conn.WIRE_PROTOCOL_VERSION != "2.0":  # pragma: no cover - guarded by rover_bridge.mav
             raise ConfigError([f"{self.url}: pymavlink did not select MAVLink 2"])
+        port = getattr(self.conn, "port", None)
+        if isinstance(port, socket.socket) and port.type == socket.SOCK_DGRAM:
+            # Room for ~0.25 s of a fast telemetry stream (Linux default: ~200 small datagrams), so a
+            # bridge that a busy companion computer deschedules for a few tens of ms drops nothing.
+            with contextlib.suppress(OSError):
+                port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF_BYTES)
         self.rx_frames = 0
         self.rx_bad = 0
         self.tx_frames = 0
