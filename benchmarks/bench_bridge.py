@@ -873,7 +873,7 @@ def bench_memory_inprocess(args: argparse.Namespace) -> None:
     rows = [[n, f"{t:.1f}", kb / 1024.0, (kb - base_kb) / 1024.0] for n, t, kb in rss]
     print_table(f"5. memory: VmRSS of the Runner + Core (in-process, real UDP endpoints), 90% forwarded-only "
                 f"telemetry, 8% WHEEL_DISTANCE/ATTITUDE/SYSTEM_TIME, 2% requests; first row after {args.warmup:,} "
-                "warm-up messages", 
+                "warm-up messages",
                 ["messages_sent", "elapsed_s", "rss_mb", "growth_mb"], rows)
     growth = (rss[-1][2] - base_kb) / 1024.0
     measured = rss[-1][0] - rss[0][0]
