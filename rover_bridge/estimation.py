@@ -83,6 +83,8 @@ GYRO_MESSAGES = {  # source name -> (message id, stream group), in 'auto' priori
     "raw_imu": (mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAV_DATA_STREAM_RAW_SENSORS),
 }
 GYRO_PRIORITY = tuple(GYRO_MESSAGES)
+SILENCE_S = 0.5  # no measurement at all for this long: the next one restarts the motion (see _after_silence)
+GYRO_MAX_RAD_S = 50.0  # beyond any rover: such a "rate" is corrupt data, not a measurement
 GYRO_SILENT_S = 3.0  # 'auto' falls back to a lower-priority source after this long without the current one
 
 STREAM_ACK_TIMEOUT_S = 1.0
@@ -425,8 +427,13 @@ class EstimateCore:
         if not self._gyro_source_ok(source, now_s):
             return []
         omega = frames.omega_from_mavlink_yaw_rate(yaw_rate_cw_rad_s)
-        t = self._gyro_clocks[source].map(stamp_s, now_s)
         self._stream_arrival(source.upper(), now_s)
+        if not (math.isfinite(omega) and abs(omega) <= GYRO_MAX_RAD_S):
+            # Poison (NaN, inf, 3e38) never reaches the filter, nor the stream's clock.
+            self._counters["gyro_rejected"] += 1
+            return []
+        t = self._gyro_clocks[source].map(stamp_s, now_s)
+        self._after_silence(t)
         last_t = self._gyro_last_t.get(source)
         if last_t is not None and t <= last_t:
             # Reordered or duplicated (UDP): fusing it as the newest rate would also make the EKF's
@@ -434,9 +441,6 @@ class EstimateCore:
             self._counters["gyro_stale"] += 1
             return []
         self._gyro_last_t[source] = t
-        if not math.isfinite(omega):
-            self._counters["gyro_rejected"] += 1
-            return []
         self._counters["gyro_samples"] += 1
         if not self.ekf.update_gyro(t, omega):
             self._counters["gyro_rejected"] += 1
@@ -446,6 +450,16 @@ class EstimateCore:
         self._gyro_window.append(omega)
         self._gyro_last = (now_s, omega)
         return []
+
+    def _after_silence(self, t: float) -> None:
+        """First measurement after every sensor was silent: continue from the pose published meanwhile.
+
+        ODOMETRY held the pose EXTRAPOLATE_MAX_S after the last measurement; predicting through the
+        silence at the old speed now would jump it (a rebooting autopilot's motors stopped). Wheel
+        distances, being cumulative, still move it the real distance when they come back.
+        """
+        if self.ekf.time_s is not None and t - self.ekf.time_s > SILENCE_S:
+            self.ekf.restart_motion(t)
 
     def _gyro_source_ok(self, source: str, now_s: float) -> bool:
         if self.profile.estimator.gyro_source != "auto":
@@ -470,6 +484,9 @@ class EstimateCore:
         kind = step.kind
         if kind in (StepKind.BASELINE, StepKind.REBOOT, StepKind.RESYNC):
             t = self._wheel_clock.map(step.stamp_s, now_s)
+            if kind is StepKind.REBOOT and self.ekf.time_s is not None:
+                # Continue from the pose published now (no jump); the silence is not dead-reckoned.
+                self.ekf.restart_motion(max(t, self.ekf.time_s))
             self.ekf.predict_to(t)
             self._have_wheels = True
             self._gyro_window.clear()
@@ -492,6 +509,7 @@ class EstimateCore:
         if kind is not StepKind.STEP:
             return out
         t = self._wheel_clock.map(step.stamp_s, now_s)
+        self._after_silence(t)
         gyro_mean: float | None = None
         window = self._gyro_window
         gyro_spread = 0.0

@@ -76,6 +76,9 @@ STATIONARY_SIGMA_OMEGA_RAD_S = 1e-3
 # A sensor rejected this many times in a row is accepted again: the filter, not the sensor,
 # is then the likelier culprit (robot_localization has no such escape and can lock out).
 MAX_CONSECUTIVE_REJECTS = 5
+MAX_PREDICT_STEP_S = 0.1
+EXTRAPOLATE_MAX_S = 0.2  # publishing: how far past the last measurement the pose may move
+COAST_S = 0.3  # a rover whose motors lost power stops within about this (distance = speed x this, 1 sigma)
 TRAPEZOID_MAX_DT_S = 0.2  # longer gyro gaps: no trapezoid correction (the rate is not linear over them)
 
 
@@ -297,17 +300,22 @@ class WheelGyroEKF:
         if self.time_s is None:
             self.time_s = t_s
             return
-        dt = t_s - self.time_s
-        if dt <= 0.0:
+        total = t_s - self.time_s
+        if total <= 0.0:
             return
-        x = self.ekf.x
-        self.ekf.F = F_jacobian(x, dt)
-        self.ekf.Q = process_noise(x, dt)
-        self.ekf.x = fx(x, dt)
-        self.ekf.P = self.ekf.F @ self.ekf.P @ self.ekf.F.T + self.ekf.Q
+        # Sub-steps through a gap, so the covariance grows as the random walks really do (one long
+        # step would add the speed noise to the speed only, not to the position it moves).
+        steps = max(1, math.ceil(total / MAX_PREDICT_STEP_S))
+        dt = total / steps
+        for _ in range(steps):
+            x = self.ekf.x
+            self.ekf.F = F_jacobian(x, dt)
+            self.ekf.Q = process_noise(x, dt)
+            self.ekf.x = fx(x, dt)
+            self.ekf.P = self.ekf.F @ self.ekf.P @ self.ekf.F.T + self.ekf.Q
+            self._turned_since_gyro_rad += float(x[IW]) * dt
+            self._moved_since_wheels_m += float(x[IV]) * dt
         self.time_s = t_s
-        self._turned_since_gyro_rad += float(x[IW]) * dt
-        self._moved_since_wheels_m += float(x[IV]) * dt
 
     def extrapolate(self, t_s: float) -> tuple[Vec, Mat]:
         """State and covariance predicted to t_s, without changing the filter (for publishing)."""
@@ -315,8 +323,35 @@ class WheelGyroEKF:
         if self.time_s is None or t_s <= self.time_s:
             return x.copy(), P.copy()
         dt = t_s - self.time_s
-        F = F_jacobian(x, dt)
-        return fx(x, dt), F @ P @ F.T + process_noise(x, dt)
+        # The pose moves on for at most EXTRAPOLATE_MAX_S past the last measurement (a silent link
+        # may be a rebooting autopilot whose motors stopped); the covariance keeps growing.
+        moved = min(dt, EXTRAPOLATE_MAX_S)
+        F = F_jacobian(x, moved)
+        return fx(x, moved), F @ P @ F.T + process_noise(x, dt) * max(1.0, dt / MAX_PREDICT_STEP_S)
+
+    def restart_motion(self, t_s: float) -> None:
+        """After an autopilot reboot: continue from the pose published now, speeds unknown near zero.
+
+        The motors lose power while the board restarts, so the rover has coasted to a stop somewhere
+        near the held pose; nothing measured the silence, so the pose covariance takes the coasting
+        distance and the speeds restart at zero with their initial uncertainty.
+        """
+        x, P = self.extrapolate(t_s)
+        coast_m = abs(float(x[IV])) * COAST_S
+        coast_rad = abs(float(x[IW])) * COAST_S
+        x[IV] = x[IW] = 0.0
+        for i in (IV, IW):
+            P[i, :] = 0.0
+            P[:, i] = 0.0
+        P[IV, IV], P[IW, IW] = SIGMA0_V**2, SIGMA0_OMEGA**2
+        P[IX, IX] += coast_m**2
+        P[IY, IY] += coast_m**2
+        P[IYAW, IYAW] += coast_rad**2
+        self.ekf.x, self.ekf.P = x, P
+        self.time_s = t_s
+        self._gyro_prev = self._wheels_prev = None
+        self._still_since_s = None
+        self._turned_since_gyro_rad = self._moved_since_wheels_m = 0.0
 
     # -- updates
     def _gate(self, sensor: str, d2: float) -> bool:
@@ -446,8 +481,14 @@ class WheelGyroEKF:
         # last update's to this one's while the prediction used piecewise-constant speeds.
         v_now = float(self.ekf.x[IV])
         prev = self._wheels_prev
+        missed: float | None = None
         if prev is not None and 0.0 < t_s - prev[0] <= TRAPEZOID_MAX_DT_S:
             missed = 0.5 * (prev[1] + v_now) * (t_s - prev[0]) - self._moved_since_wheels_m
+        elif (prev is None or dt_s > TRAPEZOID_MAX_DT_S) and not slip:
+            # First interval (speed unknown before it) or a gap (speed not linear across it): the
+            # cumulative distances say how far the rover went.
+            missed = 0.5 * (d_left_m + d_right_m) - self._moved_since_wheels_m
+        if missed is not None:
             yaw = float(self.ekf.x[IYAW])
             self.ekf.x[IX] += math.cos(yaw) * missed
             self.ekf.x[IY] += math.sin(yaw) * missed

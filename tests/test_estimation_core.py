@@ -110,8 +110,7 @@ def test_odometry_signs_for_a_right_turn() -> None:
     msg = _odometry(core, t)
     assert msg.frame_id == mavlink.MAV_FRAME_LOCAL_FRD and msg.child_frame_id == mavlink.MAV_FRAME_BODY_FRD
     # 1 m along a right-hand arc of radius 1 m: x = sin 1, y right = 1 - cos 1, yaw CW = 1 rad
-    # (x: the speed is unknown over the first interval, part of its 25 mm is not recovered)
-    assert msg.x == pytest.approx(math.sin(1.0), abs=0.02)
+    assert msg.x == pytest.approx(math.sin(1.0), abs=0.01)
     assert msg.y == pytest.approx(1.0 - math.cos(1.0), abs=0.01)
     assert msg.z == 0.0
     assert msg.q[0] == pytest.approx(math.cos(0.5), abs=0.01) and msg.q[3] == pytest.approx(math.sin(0.5), abs=0.01)
