@@ -488,6 +488,7 @@ class EstimateCore:
                 # Continue from the pose published now (no jump); the silence is not dead-reckoned.
                 self.ekf.restart_motion(max(t, self.ekf.time_s))
             self.ekf.predict_to(t)
+            self.ekf.wheel_baseline()
             self._have_wheels = True
             self._gyro_window.clear()
             if kind is StepKind.REBOOT:

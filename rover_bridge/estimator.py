@@ -336,6 +336,7 @@ class WheelGyroEKF:
         near the held pose; nothing measured the silence, so the pose covariance takes the coasting
         distance and the speeds restart at zero with their initial uncertainty.
         """
+        held_m = float(self.ekf.x[IV]) * min(max(0.0, t_s - (self.time_s or t_s)), EXTRAPOLATE_MAX_S)
         x, P = self.extrapolate(t_s)
         coast_m = abs(float(x[IV])) * COAST_S
         coast_rad = abs(float(x[IW])) * COAST_S
@@ -351,7 +352,14 @@ class WheelGyroEKF:
         self.time_s = t_s
         self._gyro_prev = self._wheels_prev = None
         self._still_since_s = None
-        self._turned_since_gyro_rad = self._moved_since_wheels_m = 0.0
+        self._turned_since_gyro_rad = 0.0
+        # The held pose already moved this far of the wheels' next interval.
+        self._moved_since_wheels_m += held_m
+
+    def wheel_baseline(self) -> None:
+        """The next wheel interval starts here (first reading, re-base after a reboot or resync)."""
+        self._wheels_prev = None
+        self._moved_since_wheels_m = 0.0
 
     # -- updates
     def _gate(self, sensor: str, d2: float) -> bool:

@@ -386,3 +386,20 @@ def test_calibration_moves_the_track_width_toward_the_truth() -> None:
     assert abs(est - L * 1.03) < 0.3 * abs(L - L * 1.03)  # 70 % of the 3 % error removed
     ratio = core.state.right_radius_m / core.state.left_radius_m
     assert ratio == pytest.approx(1.02, abs=0.006)
+
+
+def test_silent_link_holds_the_pose_and_cumulative_distances_catch_up() -> None:
+    core = _core()
+    t, (left, right) = _drive_twist(core, 0.5, 0.0, 2.0)
+    x_last = core.pose.x_m
+    # 1.5 s of silence: ODOMETRY moves on for at most 0.2 s at 0.5 m/s, then holds
+    held = core.pose_at(t + 1.5)
+    assert held.x_m == pytest.approx(x_last + 0.1, abs=0.005)
+    sigma_before = core.state.sigma_xy_m
+    # the link comes back without a reboot: the wheels went on at 0.5 m/s, 0.775 m in 1.55 s
+    t2 = t + 1.55
+    _feed(core, _attitude(t2, 0.0), t2)
+    _feed(core, _wheels(t2, left + 0.775, right + 0.775), t2)
+    assert core.pose.x_m == pytest.approx(x_last + 0.775, abs=0.01)
+    assert core.reset_counter == 0
+    assert core.state.sigma_xy_m > sigma_before  # nothing measured the silence
