@@ -23,10 +23,14 @@ WHEEL_DISTANCE and ATTITUDE, RAW_SENSORS for the IMU messages; ArduPilot 4.7 ref
 for WHEEL_DISTANCE). Arrival rates are measured over RATE_WINDOW_S; a stream below
 SLOW_FRACTION of the requested rate is re-requested and reported (STATUSTEXT, rate-limited).
 
-Output: ODOMETRY (331) at [odometry] rate_hz to [odometry] targets, extrapolated to now:
-- time_usec: the autopilot's boot time (SYSTEM_TIME.time_boot_ms mapped like the sensor stamps;
-  TIMESYNC is not used: it needs a round trip the pure core would have to schedule, and SYSTEM_TIME
-  arrives anyway in ArduPilot's default streams). Until one arrives: now_s (monotonic) in us.
+Output: ODOMETRY (331) at [odometry] rate_hz to [odometry] targets, extrapolated to now (at most
+0.2 s past the last measurement: during a silent link it holds; after 0.5 s of total silence the
+next measurement continues from the held pose with the speeds restarted, see _after_silence):
+- time_usec: the autopilot's boot time. Preferably through WHEEL_DISTANCE.time_usec (ArduPilot's
+  boot clock), mapped exactly as the estimate's own measurements are, so the stamp is the time of
+  the published pose even when the autopilot's clock drifts from ours; before wheel data, through
+  SYSTEM_TIME.time_boot_ms (same mapping); TIMESYNC is not used (it needs a round trip the pure core
+  would have to schedule). With neither: now_s (monotonic) in us.
   ArduPilot re-times external navigation with its own jitter filter either way.
 - frame_id MAV_FRAME_LOCAL_FRD (origin and axes of the start pose), child_frame_id MAV_FRAME_BODY_FRD;
   x forward, y right, z = 0; q from the FRD (clockwise) yaw; vx forward, vy = 0, vz = 0, yawspeed CW+.
@@ -96,7 +100,9 @@ RATE_GRACE_S = 2.0  # let a freshly requested stream speed up before measuring i
 SLOW_FRACTION = 0.7
 SLOW_REPORT_INTERVAL_S = 30.0
 
-CLOCK_DRIFT = 1e-3  # s/s: how fast a stream's latency offset may creep up
+# s/s: how fast a stream's latency offset may creep up. Generous, so a sender's clock that runs
+# slow against ours (an emulator behind real time on a loaded machine) is followed within seconds.
+CLOCK_DRIFT = 0.05
 REORDER_WINDOW_S = 0.5
 GYRO_FOR_SLIP_MAX_AGE_S = 0.25
 SLIP_REPORT_INTERVAL_S = 5.0
@@ -212,7 +218,6 @@ class EstimateCore:
         self._gyro_clocks = {name: _StreamClock() for name in GYRO_MESSAGES}
         self._ap_time = _StreamClock()  # SYSTEM_TIME: offset is "autopilot boot time - now" (negated latency)
         self._ap_offset_s: float | None = None
-        self._ap_last_boot_s: float | None = None
         self._gyro_source: str | None = None if est.gyro_source == "auto" else est.gyro_source
         self._gyro_last_seen: dict[str, float] = {}
         self._gyro_last_t: dict[str, float] = {}  # newest mapped stamp fused per gyro source
@@ -412,13 +417,10 @@ class EstimateCore:
         return []
 
     def _handle_system_time(self, msg: MAVLinkMessage, now_s: float) -> None:
-        boot_s = msg.time_boot_ms * 1e-3
-        if self._ap_last_boot_s is not None and boot_s < self._ap_last_boot_s - REORDER_WINDOW_S:
-            self._ap_offset_s = None
-        self._ap_last_boot_s = boot_s
-        # boot time at arrival >= stamp: the largest (stamp - now) is the least delayed one.
-        ahead = boot_s - now_s
-        self._ap_offset_s = ahead if self._ap_offset_s is None else max(self._ap_offset_s, ahead)
+        # The same least-latency mapping as the sensor stamps (re-learnt when the boot clock restarts).
+        self._ap_time.map(msg.time_boot_ms * 1e-3, now_s)
+        assert self._ap_time.offset_s is not None
+        self._ap_offset_s = -self._ap_time.offset_s
 
     def _handle_gyro(
         self, source: str, stamp_s: float, yaw_rate_cw_rad_s: float, now_s: float
@@ -660,8 +662,16 @@ class EstimateCore:
 
     # ------------------------------------------------------------------ output
     def odometry_time_usec(self, now_s: float) -> int:
-        """now_s on the autopilot's boot clock when SYSTEM_TIME has been seen, else now_s itself."""
-        t = now_s + self._ap_offset_s if self._ap_offset_s is not None else now_s
+        """now_s on the autopilot's boot clock: through WHEEL_DISTANCE's own stamps when they flow (the
+        pose is computed on exactly that mapping, so pose and stamp agree even when the autopilot's
+        clock runs off ours), else through SYSTEM_TIME, else now_s itself (monotonic)."""
+        wheel_offset = self._wheel_clock.offset_s
+        if wheel_offset is not None and self._have_wheels:
+            t = now_s - wheel_offset
+        elif self._ap_offset_s is not None:
+            t = now_s + self._ap_offset_s
+        else:
+            t = now_s
         return max(0, round(t * 1e6))
 
     def odometry_message(self, now_s: float) -> MAVLinkMessage:

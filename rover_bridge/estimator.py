@@ -3,8 +3,8 @@
 State (internal convention of rover-bridge: x forward of the start pose, y left, yaw counter-clockwise)
 
     0 x_m   1 y_m   2 yaw_rad   3 v_m_s (forward)   4 omega_rad_s (CCW)   5 gyro_bias_rad_s
-    6 track_scale   (effective track width / nominal)            } only with calibrate = true
-    7 radius_ratio  (effective right wheel scale / left)         }
+    6 track_scale   (effective track width / nominal)            } estimated with calibrate = true;
+    7 radius_ratio  (effective right wheel scale / left)         } otherwise Schmidt "consider" states
 
 Motion: v and omega are random walks; the pose moves along the exact circular arc they describe
 over dt (odometry.arc_factors), so a spin in place and a straight line are both exact.
@@ -20,6 +20,12 @@ Measurements
 Gating is per sensor on the Mahalanobis distance of the innovation. Wheel slip is a separate test:
 the wheels' yaw rate against the gyro's (bias removed) over the same interval; on slip the wheels'
 yaw contribution is down-weighted and their velocity variance inflated.
+
+Beyond the textbook EKF: trapezoid corrections of yaw (between gyro samples) and distance (between
+wheel readings), since the constant-rate prediction otherwise lags every change of rate by half a
+sample; cumulative wheel distances move the pose the real distance over a first interval or a gap;
+a standstill bound that tightens with its duration; publishing extrapolates at most
+EXTRAPOLATE_MAX_S past the last measurement, and restart_motion continues from that held pose.
 
 Every model is a pure function of (x, dt) so tests can check the Jacobians by finite differences.
 """
