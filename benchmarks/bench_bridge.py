@@ -275,6 +275,9 @@ class Bridge:
         # time, which on a busy machine charges other processes' time slices to whatever was running).
         prof = os.environ.get("BENCH_CPROFILE") if root == REPO else None
         python = [sys.executable, *(["-c", _CPROFILE_MAIN.format(path=prof)] if prof else ["-m", "rover_bridge"])]
+        # BENCH_PREFIX="chrt -f 10" (or "nice -n -10") runs every bridge under test that way: what a
+        # real-time priority (e.g. systemd's CPUSchedulingPolicy=) buys on a busy machine.
+        python = [*os.environ.get("BENCH_PREFIX", "").split(), *python]
         self.proc = subprocess.Popen(
             [*python, "run", "--params", profile_path,
              "--autopilot", f"udpin:{LOCAL}:{self.ap_port}", "--gcs", f"udpin:{LOCAL}:{self.gcs_port}",
@@ -440,7 +443,9 @@ def bench_latency(args: argparse.Namespace) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         under_test = bridges(args, str(DEFAULT_PROFILE), tmp)
         echo_port = free_udp_port()
-        echo = subprocess.Popen(self_cmd("_echo", str(echo_port)), stdout=subprocess.PIPE, cwd=REPO)
+        # The echo runs under the same BENCH_PREFIX as the bridges, so the comparison stays fair.
+        echo = subprocess.Popen([*os.environ.get("BENCH_PREFIX", "").split(), *self_cmd("_echo", str(echo_port))],
+                                stdout=subprocess.PIPE, cwd=REPO)
         socks = [(udp_socket(True), udp_socket()) for _ in under_test]
         echo_sock = udp_socket(True)
         stats: list[dict[str, Any]] = []
@@ -1102,7 +1107,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--interval-ms", type=float, default=2.0, help="time between requests (default %(default)s)")
     p = sub.add_parser("throughput")
     p.add_argument("--start-hz", type=float, default=4000.0)
-    p.add_argument("--step-s", type=float, default=2.0)
+    p.add_argument("--step-s", type=float, default=1.5)
     p.add_argument("--max-steps", type=int, default=8)
     p.add_argument("--repeats", type=int, default=3)
     p = sub.add_parser("cpu")
