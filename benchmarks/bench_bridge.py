@@ -1,17 +1,23 @@
 """End-to-end benchmarks of the shipped bridge process (`python -m rover_bridge run`) over UDP loopback.
 
-Subcommands (each prints a table and finishes in well under 2 minutes; `all` runs them in turn):
+Subcommands (each prints a table and finishes in under 2 minutes; `all` runs them in turn):
 
+  hotpath      CPU per message of Runner.step in-process, beside raw parse_buffer and Core.handle alone
   latency      GCS request datagram in -> RC_CHANNELS_OVERRIDE datagram out, next to a pymavlink UDP echo
   throughput   autopilot telemetry flood routed to a GCS: highest zero-loss rate, next to raw parse_buffer
   cpu          CPU % of one core at nominal load (50 Hz wheels / IMU / control, 30 Hz ODOMETRY)
   regularity   override period jitter at command.rate_hz = 50, quiet and under a 5000 msg/s GCS flood
-  memory       bridge RSS before / after one million messages
+  memory       RSS over one million messages (in-process Runner + Core; --subprocess: the real process)
   startup      process start -> first HEARTBEAT sent; import-time breakdown
 
-Run: python benchmarks/bench_bridge.py all   (or one subcommand; --help for options)
+Run: python benchmarks/bench_bridge.py all [--base DIR]   (or one subcommand; --help for options)
+  --base DIR          also measure the bridge of another source tree side by side, e.g. the previous
+                      commit: mkdir /tmp/base && git archive HEAD~1 | tar -x -C /tmp/base
+  BENCH_PREFIX=...    run the bridges (and the echo) under e.g. "chrt -f 10" or "nice -n -10"
+  BENCH_CPROFILE=P    run this tree's bridge under cProfile (CPU time), stats to P
 Not a test: numbers depend on the machine and its load; nothing here asserts on them. Comparisons
-(bridge vs echo, bridge vs raw parse, quiet vs flood) are measured side by side in the same run.
+(bridge vs echo, bridge vs raw parse, quiet vs flood, this tree vs --base) are measured side by
+side in the same run.
 
 The harness fakes the autopilot and the GCS with plain UDP sockets and frames packed once by
 pymavlink, so its own cost stays small next to the bridge's. Receive times are the kernel's
