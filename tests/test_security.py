@@ -358,6 +358,8 @@ def test_run_refuses_to_start_with_an_exposed_key(tmp_path: Path, capsys: Any) -
     assert code == 2
     assert "chmod 600" in capsys.readouterr().err
     assert stat.S_IMODE(os.stat(path).st_mode) == 0o644  # never "fixed" behind the user's back
+    # The CLI put the log rate limit on the handlers before anything ran.
+    assert any(isinstance(f, LogRateLimit) for h in logging.getLogger().handlers for f in h.filters)
 
 
 def test_frames_the_bridge_sends_to_the_gcs_are_signed() -> None:
