@@ -330,7 +330,12 @@ class CommandCore:
         msgs = self.outputs.command(pwm, vehicle, self.identity.autopilot_component_id)
         self.last_wheel_pwm = pwm
         self._last_output_s = now_s
-        self._next_output_s = now_s + self.period_s
+        # A periodic output keeps the fixed grid (now + period would add the loop's lateness to every
+        # period, a slow drift of the refresh rate); an early output (a fresh request acted on at once)
+        # or one more than a period late starts a new grid from now.
+        nxt = self._next_output_s
+        on_grid = nxt is not None and 0.0 <= now_s - nxt < self.period_s
+        self._next_output_s = nxt + self.period_s if on_grid and nxt is not None else now_s + self.period_s
         self._count("outputs.sent")
         out = [self._to_autopilot(m) for m in msgs]
         if self.state is State.BRAKING and self.limiter.current == Twist2D():

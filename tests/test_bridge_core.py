@@ -181,6 +181,23 @@ def test_only_neutral_at_the_refresh_rate_before_the_first_request() -> None:
     assert state(rig) is State.IDLE
 
 
+def test_late_ticks_do_not_slow_the_refresh_rate() -> None:
+    # A real loop wakes a little after each deadline; the refresh must stay on its grid, not drift
+    # by the lateness every period (3 ms late at 20 Hz would otherwise give 18.9 Hz).
+    rig = Rig()
+    rig.heartbeat(0.0)
+    t, next_heartbeat = 0.0, 1.0
+    ticks: list[float] = []
+    while t < 10.0:
+        t = rig.core.next_deadline_s(t) + 0.003
+        if t >= next_heartbeat:  # keep the autopilot link alive
+            rig.heartbeat(t)
+            next_heartbeat += 1.0
+        ticks += [t for o in rig.core.tick(t) if o.msg.get_type() == "RC_CHANNELS_OVERRIDE"]
+    assert len(ticks) == pytest.approx(10.0 / PERIOD_S, abs=1)
+    assert all(b - a == pytest.approx(PERIOD_S, abs=1e-9) for a, b in itertools.pairwise(ticks))
+
+
 # ------------------------------------------------------------------ immediate reaction, frames, signs
 
 
