@@ -219,10 +219,9 @@ def test_autopilot_reboot_mid_drive_odometry_continuous_reset_counter_steps_once
         ls.close()
 
 
-@pytest.mark.xfail(strict=True, reason="known estimator bug, reported: across an autopilot reboot the EKF "
-                   "dead-reckons the silent gap at the pre-reboot speed although the motors stopped (0.66 m off "
-                   "with sigma_xy 0.025 m here); strict: this fails loudly once fixed, so the mark is removed")
 def test_estimate_after_a_reboot_mid_drive_matches_the_truth_within_its_covariance() -> None:
+    # Was 0.66 m off with sigma_xy 0.025 m: the EKF dead-reckoned the reboot's silent gap at the old
+    # speed although the motors had stopped (fixed in b2ab0a1, "no dead-reckoning through a silent link").
     ls = Lockstep(Profile(), VehicleConfig(), seed=6)
     try:
         drive(ls, None, 1.5)
