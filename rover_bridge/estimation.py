@@ -9,10 +9,13 @@ Inputs (read, never consumed: the shell still forwards them to the ground statio
 - SYSTEM_TIME.time_boot_ms: the autopilot's time base for ODOMETRY.time_usec (see below);
 - HEARTBEAT and COMMAND_ACK: stream management.
 
-Sensor time: each stream's stamps (time_usec / time_boot_ms) are mapped onto the caller's time
-line (now_s) with an offset = the smallest arrival latency seen (allowed to creep up by
-CLOCK_DRIFT of a second per second, so a drifting clock is followed). Intervals between samples of
-one stream are therefore exactly the autopilot's; stamps jumping back re-learn the offset.
+Sensor time: the filter runs on the autopilot's boot clock: every measurement is applied at its
+own stamp (WHEEL_DISTANCE.time_usec, ATTITUDE/SCALED_IMU.time_boot_ms, RAW_IMU.time_usec: one
+clock for all streams), never at its arrival time, so network and scheduling jitter cannot shift
+the gyro against the wheels or stretch an interval. Only publishing needs "now" on that clock:
+one offset = the smallest arrival latency seen over every stream (allowed to creep up by
+CLOCK_DRIFT of a second per second, so a drifting clock is followed) maps now_s to it; stamps
+jumping back (a reboot) re-learn the offset and restart the filter's clock.
 
 Streams: after the autopilot's first heartbeat, after a heartbeat gap (link back or reboot) and after
 a detected reboot, the bridge asks for WHEEL_DISTANCE and the gyro message at
@@ -125,16 +128,18 @@ def upper_triangle_21(cov: list[list[float]]) -> list[float]:
 
 
 class _StreamClock:
-    """Maps one stream's stamps onto the caller's time line (offset = smallest latency seen)."""
+    """Maps the autopilot's boot clock onto the caller's time line (offset = smallest latency seen)."""
 
     def __init__(self) -> None:
         self.offset_s: float | None = None
         self._last_stamp_s: float | None = None
         self._last_now_s = 0.0
 
-    def map(self, stamp_s: float, now_s: float) -> float:
-        if self._last_stamp_s is not None and stamp_s < self._last_stamp_s - REORDER_WINDOW_S:
-            self.offset_s = None  # the sender restarted its clock
+    def map(self, stamp_s: float, now_s: float) -> bool:
+        """Learn from one stamp; True when the stamps jumped back (the autopilot restarted its clock)."""
+        restarted = self._last_stamp_s is not None and stamp_s < self._last_stamp_s - REORDER_WINDOW_S
+        if restarted:
+            self.offset_s = None
         self._last_stamp_s = stamp_s
         latency = now_s - stamp_s
         if self.offset_s is None:
@@ -142,7 +147,7 @@ class _StreamClock:
         else:
             self.offset_s = min(self.offset_s + CLOCK_DRIFT * max(0.0, now_s - self._last_now_s), latency)
         self._last_now_s = now_s
-        return stamp_s + self.offset_s
+        return restarted
 
 
 @dataclass
@@ -214,13 +219,14 @@ class EstimateCore:
             "stream_slow": 0,
             "stream_restarts": 0,
         }
-        self._wheel_clock = _StreamClock()
-        self._gyro_clocks = {name: _StreamClock() for name in GYRO_MESSAGES}
-        self._ap_time = _StreamClock()  # SYSTEM_TIME: offset is "autopilot boot time - now" (negated latency)
-        self._ap_offset_s: float | None = None
+        # One mapping for every autopilot stamp (WHEEL_DISTANCE, ATTITUDE, IMU, SYSTEM_TIME all count
+        # from the same boot clock): wheels and gyro then line up exactly as the autopilot measured
+        # them. Separate per-stream offsets differed by arrival jitter (tens of ms on a busy machine),
+        # which shifted the gyro against the wheels and cost degrees of heading at every turn-rate change.
+        self._ap_clock = _StreamClock()
         self._gyro_source: str | None = None if est.gyro_source == "auto" else est.gyro_source
         self._gyro_last_seen: dict[str, float] = {}
-        self._gyro_last_t: dict[str, float] = {}  # newest mapped stamp fused per gyro source
+        self._gyro_last_t: dict[str, float] = {}  # newest sender stamp (s) fused per gyro source
         # Gyro samples since the last wheel step (with the one before it), for the slip test.
         self._gyro_window: list[float] = []
         self._gyro_last: tuple[float, float] | None = None  # (now_s, omega)
@@ -260,7 +266,7 @@ class EstimateCore:
 
     def pose_at(self, now_s: float) -> Pose2D:
         """The pose extrapolated to now_s (what ODOMETRY publishes), x forward, y left, yaw CCW."""
-        x, _ = self.ekf.extrapolate(now_s)
+        x, _ = self.ekf.extrapolate(self._autopilot_time_s(now_s))
         return Pose2D(float(x[IX]), float(x[IY]), float(x[IYAW]))
 
     @property
@@ -418,9 +424,7 @@ class EstimateCore:
 
     def _handle_system_time(self, msg: MAVLinkMessage, now_s: float) -> None:
         # The same least-latency mapping as the sensor stamps (re-learnt when the boot clock restarts).
-        self._ap_time.map(msg.time_boot_ms * 1e-3, now_s)
-        assert self._ap_time.offset_s is not None
-        self._ap_offset_s = -self._ap_time.offset_s
+        self._stamp(msg.time_boot_ms * 1e-3, now_s)
 
     def _handle_gyro(
         self, source: str, stamp_s: float, yaw_rate_cw_rad_s: float, now_s: float
@@ -434,15 +438,16 @@ class EstimateCore:
             # Poison (NaN, inf, 3e38) never reaches the filter, nor the stream's clock.
             self._counters["gyro_rejected"] += 1
             return []
-        t = self._gyro_clocks[source].map(stamp_s, now_s)
+        t = self._stamp(stamp_s, now_s)
         self._after_silence(t)
-        last_t = self._gyro_last_t.get(source)
-        if last_t is not None and t <= last_t:
-            # Reordered or duplicated (UDP): fusing it as the newest rate would also make the EKF's
-            # trapezoid yaw correction count the interval since that old stamp twice. Drop, as for wheels.
+        last_stamp_s = self._gyro_last_t.get(source)
+        if last_stamp_s is not None and last_stamp_s - REORDER_WINDOW_S <= stamp_s <= last_stamp_s:
+            # Reordered or duplicated (UDP), judged on the sender's own stamps (further back is a reboot):
+            # fusing it as the newest rate would also make the EKF's trapezoid yaw correction count the
+            # interval since that old stamp twice. Drop, as WheelInput does for wheels.
             self._counters["gyro_stale"] += 1
             return []
-        self._gyro_last_t[source] = t
+        self._gyro_last_t[source] = stamp_s
         self._counters["gyro_samples"] += 1
         if not self.ekf.update_gyro(t, omega):
             self._counters["gyro_rejected"] += 1
@@ -452,6 +457,14 @@ class EstimateCore:
         self._gyro_window.append(omega)
         self._gyro_last = (now_s, omega)
         return []
+
+    def _stamp(self, stamp_s: float, now_s: float) -> float:
+        """The filter time of a measurement: its own autopilot stamp. A restarted boot clock (stamps
+        jumping back: a reboot) restarts the filter's clock from the pose published last."""
+        published_t = self._autopilot_time_s(now_s)
+        if self._ap_clock.map(stamp_s, now_s) and self.ekf.time_s is not None:
+            self.ekf.restart_motion(published_t, new_time_s=stamp_s)
+        return stamp_s
 
     def _after_silence(self, t: float) -> None:
         """First measurement after every sensor was silent: continue from the pose published meanwhile.
@@ -485,10 +498,12 @@ class EstimateCore:
         out: list[Outgoing] = []
         kind = step.kind
         if kind in (StepKind.BASELINE, StepKind.REBOOT, StepKind.RESYNC):
-            t = self._wheel_clock.map(step.stamp_s, now_s)
+            published_t = self._autopilot_time_s(now_s)  # before a restarted clock re-learns its offset
+            t = self._stamp(step.stamp_s, now_s)
             if kind is StepKind.REBOOT and self.ekf.time_s is not None:
-                # Continue from the pose published now (no jump); the silence is not dead-reckoned.
-                self.ekf.restart_motion(max(t, self.ekf.time_s))
+                # Continue from the pose published last (no jump), on the restarted boot clock; the
+                # silence is not dead-reckoned.
+                self.ekf.restart_motion(published_t, new_time_s=t)
             self.ekf.predict_to(t)
             self.ekf.wheel_baseline()
             self._have_wheels = True
@@ -511,7 +526,7 @@ class EstimateCore:
             )
         if kind is not StepKind.STEP:
             return out
-        t = self._wheel_clock.map(step.stamp_s, now_s)
+        t = self._stamp(step.stamp_s, now_s)
         self._after_silence(t)
         gyro_mean: float | None = None
         window = self._gyro_window
@@ -662,21 +677,18 @@ class EstimateCore:
 
     # ------------------------------------------------------------------ output
     def odometry_time_usec(self, now_s: float) -> int:
-        """now_s on the autopilot's boot clock: through WHEEL_DISTANCE's own stamps when they flow (the
-        pose is computed on exactly that mapping, so pose and stamp agree even when the autopilot's
-        clock runs off ours), else through SYSTEM_TIME, else now_s itself (monotonic)."""
-        wheel_offset = self._wheel_clock.offset_s
-        if wheel_offset is not None and self._have_wheels:
-            t = now_s - wheel_offset
-        elif self._ap_offset_s is not None:
-            t = now_s + self._ap_offset_s
-        else:
-            t = now_s
-        return max(0, round(t * 1e6))
+        """now_s on the autopilot's boot clock, through the same mapping as every measurement (so pose
+        and stamp agree even when the autopilot's clock runs off ours); now_s itself (monotonic) until
+        the first autopilot stamp arrives."""
+        return max(0, round(self._autopilot_time_s(now_s) * 1e6))
+
+    def _autopilot_time_s(self, now_s: float) -> float:
+        offset = self._ap_clock.offset_s
+        return now_s if offset is None else now_s - offset
 
     def odometry_message(self, now_s: float) -> MAVLinkMessage:
         """ODOMETRY for the estimate extrapolated to now_s (see the module docstring for every field)."""
-        x, P = self.ekf.extrapolate(now_s)
+        x, P = self.ekf.extrapolate(self._autopilot_time_s(now_s))
         big = self.profile.odometry.unobserved_variance
         v, w = float(x[IV]), float(x[IW])
         pose_flu = [[0.0] * 6 for _ in range(6)]

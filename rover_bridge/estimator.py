@@ -335,7 +335,7 @@ class WheelGyroEKF:
         F = F_jacobian(x, moved)
         return fx(x, moved), F @ P @ F.T + process_noise(x, dt) * max(1.0, dt / MAX_PREDICT_STEP_S)
 
-    def restart_motion(self, t_s: float) -> None:
+    def restart_motion(self, t_s: float, new_time_s: float | None = None) -> None:
         """After an autopilot reboot: continue from the pose published now, speeds unknown near zero.
 
         The motors lose power while the board restarts, so the rover has coasted to a stop somewhere
@@ -355,7 +355,9 @@ class WheelGyroEKF:
         P[IY, IY] += coast_m**2
         P[IYAW, IYAW] += coast_rad**2
         self.ekf.x, self.ekf.P = x, P
-        self.time_s = t_s
+        # The held pose is at t_s; the filter's clock goes on from new_time_s (an autopilot that
+        # rebooted restarts its boot clock near zero).
+        self.time_s = t_s if new_time_s is None else new_time_s
         self._gyro_prev = self._wheels_prev = None
         self._still_since_s = None
         self._turned_since_gyro_rad = 0.0

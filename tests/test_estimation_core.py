@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import random
 from typing import Any
 
 import pytest
@@ -403,3 +404,23 @@ def test_silent_link_holds_the_pose_and_cumulative_distances_catch_up() -> None:
     assert core.pose.x_m == pytest.approx(x_last + 0.775, abs=0.01)
     assert core.reset_counter == 0
     assert core.state.sigma_xy_m > sigma_before  # nothing measured the silence
+
+
+def test_arrival_jitter_does_not_change_the_estimate() -> None:
+    # The filter runs on the autopilot's stamps: the same messages arriving with different network
+    # and scheduling delays (here up to 30 ms, per message) must give the same filter state. Per-stream
+    # arrival-time mapping once shifted the gyro against the wheels and cost degrees per turn.
+    rng = random.Random(7)
+    samples = list(drive(_route(), TrueGeometry(), seed=5))
+    messages = [(now, msg) for now, msg, _ in samples if msg is not None]
+    steady, jittered = _core(), _core()
+    for now, msg in messages:
+        steady.handle(Incoming(Link.AUTOPILOT, msg), now)
+    late = 0.0
+    for now, msg in messages:
+        late = max(late, now + rng.uniform(0.0, 0.03))  # delayed, never reordered
+        jittered.handle(Incoming(Link.AUTOPILOT, msg), late)
+    a, b = steady.pose, jittered.pose
+    assert samples[-1][2].dist_m > 20.0  # it went somewhere, turning both ways
+    assert b.x_m == pytest.approx(a.x_m, abs=1e-9) and b.y_m == pytest.approx(a.y_m, abs=1e-9)
+    assert b.yaw_rad == pytest.approx(a.yaw_rad, abs=1e-12)
