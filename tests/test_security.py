@@ -168,6 +168,22 @@ def test_a_replayed_signed_frame_is_rejected(rig: Rig) -> None:
     assert rig.gate == {f"rejected.{BAD_SIGNATURE}": 2}
 
 
+def test_a_frame_accepted_on_one_gcs_link_cannot_be_replayed_on_another() -> None:
+    # One verifier for every GCS link (as `run` sets them up): the stream's timestamp is shared.
+    first, second = Rig(secured()), Rig(secured(), key=None)
+    try:
+        second.verifier = first.verifier
+        second.ep.setup_signing(KEY, link_id=2, initial_timestamp=T0, verifier=first.verifier)
+        frame = request().pack(signer(KEY))
+        assert first.feed(frame) == [True] and first.core.command.counters["requests.accepted"] == 1
+        second.feed(frame)
+        assert "requests.accepted" not in second.core.command.counters
+        assert second.gate == {f"rejected.{BAD_SIGNATURE}": 1} and first.verifier.counters["replayed"] == 1
+    finally:
+        first.close()
+        second.close()
+
+
 def test_a_new_stream_more_than_a_minute_old_is_rejected(rig: Rig) -> None:
     rig.feed(request().pack(signer(KEY, timestamp=T0 - 61 * 100_000)))
     assert rig.verifier.counters["stale_new_stream"] == 1
