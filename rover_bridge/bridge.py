@@ -59,6 +59,7 @@ from rover_bridge.wire import NOTHING, Incoming, Link, Outgoing, Reaction
 log = logging.getLogger("rover_bridge.command")
 
 NO_ATTITUDE = "no_attitude"
+MAX_SAID = 1024  # (report, source) pairs remembered for "say once"
 UNAUTHORISED = "unauthorised"
 
 
@@ -363,7 +364,9 @@ class CommandCore:
 
     def _say_once(self, key: str, text: str, source: tuple[int, int], now_s: float) -> list[Outgoing]:
         """Report `text` once per (key, source); later occurrences are only counted."""
-        if (key, *source) in self._said:
+        # Bounded: spoofed source ids (65k of them) must not grow the set without limit; past the cap
+        # only the counters record them.
+        if (key, *source) in self._said or len(self._said) >= MAX_SAID:
             return []
         self._said.add((key, *source))
         return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, text, now_s, key=key)

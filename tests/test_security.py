@@ -331,6 +331,18 @@ def test_rejection_reports_stay_bounded_under_a_flood_of_spoofed_sources() -> No
         r.close()
 
 
+def test_say_once_reports_stay_bounded_under_spoofed_sources_without_security() -> None:
+    r = Rig(Profile(), key=None)
+    try:
+        for sysid in range(1, 256):
+            for compid in range(0, 256, 8):
+                r.feed(request(float("nan")).pack(signer(None, sysid, compid)))
+        assert r.core.command.counters["rejected.non_finite"] == 255 * 32  # every one counted
+        assert len(r.core.command._said) <= 1024
+    finally:
+        r.close()
+
+
 # ------------------------------------------------------------------------------------- key files
 
 def _write(path: Path, data: bytes, mode: int = 0o600) -> str:
