@@ -70,7 +70,10 @@ def route(scale: float = 1.0) -> list[Phase]:
     spin_rate = 1.5
     eight_v, eight_w = 0.4, 1.0
     leg_v, leg_s = 0.4, 3.2 * s
-    phases = [Phase("straight", 4.0 * s, body(0.5, 0.0)),
+    # A rover stands still for a moment after power-up: the estimator learns the gyro bias there,
+    # where the wheels are exact, not from miscalibrated wheels in motion.
+    phases = [Phase("standstill", 2.0, body(0.0, 0.0)),
+              Phase("straight", 4.0 * s, body(0.5, 0.0)),
               Phase("spin", 2.0 * math.pi / spin_rate * max(s, 0.5), body(0.0, spin_rate))]
     for name, (vn, ve) in (("square N", (leg_v, 0.0)), ("square E", (0.0, leg_v)),
                            ("square S", (-leg_v, 0.0)), ("square W", (0.0, -leg_v))):
