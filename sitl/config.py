@@ -189,14 +189,19 @@ class VehicleConfig:
             raise ConfigError(source, list(exc.problems)) from None
 
 
+def read_toml(p: Path) -> dict[str, Any]:
+    """A TOML file as a dict; an unreadable or malformed file is a ConfigError naming it."""
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(str(p), [str(exc)]) from exc
+
+
 def load_vehicle(path: str | Path) -> VehicleConfig:
     """Load a vehicle profile TOML (keys at top level or under ``[vehicle]``)."""
     p = Path(path)
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(str(p), [str(exc)]) from exc
+    data = read_toml(p)
     table = data.get("vehicle", data)
     if not isinstance(table, dict):
         raise ConfigError(str(p), ["[vehicle] must be a table"])

@@ -39,13 +39,12 @@ end_s = 7.0
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sitl.config import ConfigError
+from sitl.config import ConfigError, read_toml
 
 WHEELS = ("left", "right", "both")
 
@@ -186,11 +185,7 @@ def _check(ev: Mapping[str, Any]) -> list[str]:
 def load_scenario(path: str | Path) -> Scenario:
     """Load a scenario TOML file (a list of ``[[event]]`` tables)."""
     p = Path(path)
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(str(p), [str(exc)]) from exc
+    data = read_toml(p)
     unknown = [k for k in data if k != "event"]
     if unknown:
         raise ConfigError(str(p), [f"unknown top-level key {k!r}" for k in unknown])
