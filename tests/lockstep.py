@@ -95,9 +95,10 @@ class Lockstep:
             if msg.get_type() != "BAD_DATA":
                 self.view.add(self.t_s, msg)
 
-    def run_for(self, duration_s: float, every_s: float = 0.1,
-                send: Any = None) -> None:
-        """Step for `duration_s`; call `send()` every `every_s` (a GCS sending at 10 Hz) if given."""
+    def run_for(self, duration_s: float, every_s: float = 0.1, send: Any = None,
+                before_step: Any = None, after_step: Any = None) -> None:
+        """Step for `duration_s`; call `send()` every `every_s` (a GCS sending at 10 Hz) if given,
+        heartbeat from the GCS at 1 Hz, and run the optional hooks around every step."""
         steps = round(duration_s / self.dt_s)
         every = max(1, round(every_s / self.dt_s))
         for i in range(steps):
@@ -105,7 +106,11 @@ class Lockstep:
                 send()
             if i % round(1.0 / self.dt_s) == 0:
                 self.gcs_heartbeat()
+            if before_step is not None:
+                before_step()
             self.step()
+            if after_step is not None:
+                after_step()
 
     def close(self) -> None:
         self.runner.stop_safely(self.t_s)

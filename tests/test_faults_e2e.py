@@ -69,18 +69,7 @@ class GcsWire:
 def drive(ls: Lockstep, wire: GcsWire | None, duration_s: float, send: Callable[[], None] | None = None,
           every_s: float = 0.1, on_step: Callable[[], None] | None = None) -> None:
     """Lockstep.run_for with the GCS wire pumped before each step (requests at 10 Hz, heartbeat 1 Hz)."""
-    steps = round(duration_s / ls.dt_s)
-    every = max(1, round(every_s / ls.dt_s))
-    for i in range(steps):
-        if send is not None and i % every == 0:
-            send()
-        if i % round(1.0 / ls.dt_s) == 0:
-            ls.gcs_heartbeat()
-        if wire is not None:
-            wire.pump()
-        ls.step()
-        if on_step is not None:
-            on_step()
+    ls.run_for(duration_s, every_s, send, before_step=wire.pump if wire is not None else None, after_step=on_step)
 
 
 ROUTE = [(4.0, 0.5, 0.0), (3.0, 0.3, 0.5), (4.0, 0.5, 0.0), (3.0, 0.3, -0.4)]  # (s, vx m/s, yaw rate CW rad/s)
