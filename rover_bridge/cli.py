@@ -28,7 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
     # allow_abbrev=False: otherwise a subcommand option such as `ik --v` is taken as an
     # ambiguous abbreviation of --version/--verbose by this top-level parser.
     parser = argparse.ArgumentParser(prog="rover-bridge", allow_abbrev=False,
-                                     description=__doc__.splitlines()[0] if __doc__ else None)
+                                     description="MAVLink 2 companion bridge for differential-drive rovers: "
+                                                 "velocity requests in, safe per-wheel overrides out; wheel "
+                                                 "encoders + gyro fused into ODOMETRY. Try `rover-bridge demo`.")
     parser.add_argument("--version", action="version", version=f"rover-bridge {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
