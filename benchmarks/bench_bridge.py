@@ -43,7 +43,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -382,6 +382,14 @@ class Heartbeats:
             self.next_s = now_s + 0.5
 
 
+def stop_all(bridges: Sequence[Any], socks: Sequence[socket.socket]) -> list[Any]:
+    """Stop every bridge under test (collecting its stats) and close the harness's sockets."""
+    stats = [br.stop() for br in bridges]
+    for sock in socks:
+        sock.close()
+    return stats
+
+
 def print_table(title: str, header: list[str], rows: list[list[Any]]) -> None:
     print(f"\n# {title}")
     cells = [header] + [[f"{c:.3f}" if isinstance(c, float) else str(c) for c in row] for row in rows]
@@ -499,10 +507,7 @@ def bench_latency(args: argparse.Namespace) -> None:
         finally:
             echo.kill()
             echo.wait()
-            stats = [br.stop() for br in under_test]
-            for pair in socks:
-                for sock in pair:
-                    sock.close()
+            stats = stop_all(under_test, [sock for pair in socks for sock in pair])
             echo_sock.close()
     rows = [[name, len(xs), n_lost, pct(xs, 50), pct(xs, 99), max(xs)]
             for (name, *_rest), xs, n_lost in zip(paths, samples, lost, strict=True)]
@@ -633,10 +638,7 @@ def bench_throughput(args: argparse.Namespace) -> None:
                 rows.append([br.name, "max", sent, received, sent - received, sent / spent,
                              cpu / max(1, received) * 1e6])
         finally:
-            stats = [br.stop() for br in under_test]
-            for pair in socks:
-                for sock in pair:
-                    sock.close()
+            stats = stop_all(under_test, [sock for pair in socks for sock in pair])
     print_table(f"2. throughput: mixed autopilot telemetry ({len(FLOOD_MIX)} types, one per datagram) -> bridge -> "
                 f"GCS, {step_s:.0f} s per step",
                 ["bridge", "offered_hz", "sent", "received", "lost", "achieved_send_hz", "bridge_cpu_us_per_msg"], rows)
@@ -722,9 +724,7 @@ def bench_cpu(args: argparse.Namespace) -> None:
             for br, smp in zip(under_test, samples, strict=True):
                 smp.append((time.monotonic(), *br.cpu_split_s()))
         finally:
-            stats = [br.stop() for br in under_test]
-            for sock in all_socks:
-                sock.close()
+            stats = stop_all(under_test, all_socks)
     rows = []
     for br, smp, st in zip(under_test, samples, stats, strict=True):
         (t0, u0, s0), (t1, u1, s1) = smp[0], smp[-1]
@@ -789,10 +789,7 @@ def bench_regularity(args: argparse.Namespace) -> None:
                         rows.append([br.name, rep + 1, "flood" if flood else "quiet", flood_sent, len(periods),
                                      statistics.mean(periods) * 1e3, pct(dev_ms, 50), pct(dev_ms, 99), max(dev_ms)])
         finally:
-            stats = [br.stop() for br in under_test]
-            for pair in socks:
-                for sock in pair:
-                    sock.close()
+            stats = stop_all(under_test, [sock for pair in socks for sock in pair])
     print_table(f"4. override period at command.rate_hz = {rate_hz:.0f} (nominal {period * 1e3:.0f} ms), idle "
                 f"(neutral refresh), {args.seconds:.0f} s per run; deviation = |period - {period * 1e3:.0f} ms|",
                 ["bridge", "run", "gcs", "flood_msg_s", "periods", "mean_ms", "p50_dev_ms", "p99_dev_ms",
