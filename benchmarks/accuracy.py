@@ -24,6 +24,7 @@ import math
 import random
 import sys
 from dataclasses import dataclass, field
+from typing import Any
 
 from rover_bridge.estimation import EstimateCore
 from rover_bridge.identity import Identity
@@ -150,19 +151,24 @@ def run(name: str, vehicle: VehicleConfig, scenario: Scenario, quick: bool, seed
     return res
 
 
-def scenarios(quick: bool) -> list[Result]:
+def scenario_setups() -> list[tuple[str, VehicleConfig, Scenario, dict[str, Any]]]:
+    """(name, vehicle, scenario, extra run() arguments) of every benchmark scenario."""
     base = VehicleConfig(start_armed=True)
     mis = VehicleConfig(start_armed=True, true_right_radius_m=NOMINAL_RADIUS_M * 1.02,
                         true_track_width_m=NOMINAL_TRACK_M * 1.03)
     slip = Scenario(slips=(SlipWindow("left", 20.0, 26.0, 0.3), SlipWindow("both", 33.0, 35.0, 0.2),
                            SlipWindow("right", 80.0, 84.0, 0.4)))
     return [
-        run("clean", base, Scenario(), quick),
-        run("miscalibrated", mis, Scenario(), quick),
-        run("slip", base, slip, quick),
-        run("gyro bias 0.01", VehicleConfig(start_armed=True, gyro_bias_rad_s=0.01), Scenario(), quick),
-        run("encoder drop-outs", base, Scenario(), quick, wheel_loss=0.2, wheel_gaps=((30.0, 32.0), (70.0, 71.0))),
+        ("clean", base, Scenario(), {}),
+        ("miscalibrated", mis, Scenario(), {}),
+        ("slip", base, slip, {}),
+        ("gyro bias 0.01", VehicleConfig(start_armed=True, gyro_bias_rad_s=0.01), Scenario(), {}),
+        ("encoder drop-outs", base, Scenario(), {"wheel_loss": 0.2, "wheel_gaps": ((30.0, 32.0), (70.0, 71.0))}),
     ]
+
+
+def scenarios(quick: bool) -> list[Result]:
+    return [run(name, vehicle, scenario, quick, **extra) for name, vehicle, scenario, extra in scenario_setups()]
 
 
 def table(results: list[Result]) -> str:

@@ -34,6 +34,19 @@ def test_miscalibrated_drive_ekf_beats_raw_odometry_within_the_targets() -> None
     assert res.counters["stream_fallbacks"] == 1 and res.counters["wheel_steps"] > 20 * 55
 
 
+@pytest.mark.parametrize("name", ["miscalibrated", "slip"])
+def test_full_route_over_100_m_ekf_heading_3x_better_than_raw(name: str) -> None:
+    # The benchmark's own scenarios (2 % radius and 3 % track error; slip windows on either wheel), full
+    # four-lap route, fixed seed. Bounds: position within 1 % of the distance, heading within 3 deg
+    # (the benchmark's 2 deg target holds for this seed; other seeds reach about 2.6 deg).
+    _, vehicle, scenario, extra = next(s for s in accuracy.scenario_setups() if s[0] == name)
+    res = accuracy.run(name, vehicle, scenario, quick=False, seed=1, with_calibration=False, **extra)
+    assert res.dist_m >= 100.0
+    assert res.ekf.final_pos_m < 0.01 * res.dist_m
+    assert res.ekf.max_heading_rad < math.radians(3.0)
+    assert res.raw.max_heading_rad >= 3.0 * res.ekf.max_heading_rad
+
+
 def test_reset_counter_rises_exactly_once_across_an_emulator_reboot() -> None:
     emu = Emulator(VehicleConfig(start_armed=True), Scenario(), seed=3, record_sent=True)
     core = accuracy._core(profile_from_dict({}))
