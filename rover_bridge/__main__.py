@@ -1,7 +1,5 @@
 """`python -m rover_bridge` is the same as the `rover-bridge` console script."""
 
-import sys
+from rover_bridge.cli import console_main
 
-from rover_bridge.cli import main
-
-sys.exit(main())
+console_main()
