@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -19,18 +18,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from rover_bridge.demo import free_udp_port
 from rover_bridge.mav import mavlink, mavutil
 from sitl import Emulator, VehicleConfig
 
 REPO = Path(__file__).resolve().parents[1]
 BODY_VEL_YAW_RATE_MASK = 0b0000_0101_1100_0111
 
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-    return port
 
 
 def trial(seed: int) -> tuple[float, float, int]:

@@ -8,11 +8,11 @@ bridge, then the GCS, each draining its socket, is deterministic for a given see
 from __future__ import annotations
 
 import math
-import socket
 from dataclasses import dataclass, field
 from typing import Any
 
 from rover_bridge.core import Core
+from rover_bridge.demo import free_udp_port
 from rover_bridge.links import Endpoint
 from rover_bridge.mav import MAVLinkMessage, mavlink, mavutil
 from rover_bridge.params import Profile
@@ -23,12 +23,6 @@ from sitl import Emulator, FaultConfig, VehicleConfig
 GCS_SYSID = 255
 GCS_COMPID = 190
 
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 @dataclass
