@@ -283,7 +283,9 @@ class CommandCore:
     def _evaluate(self, now_s: float) -> State:
         if self._last_heartbeat_s is None:
             return State.WAITING
-        if now_s - self._last_heartbeat_s >= self.profile.safety.heartbeat_timeout_s:
+        # Same expression as next_deadline_s: `now - last >= timeout` can round below the timeout at
+        # exactly that deadline, and the shell would wake again and again for a tick that does nothing.
+        if now_s >= self._last_heartbeat_s + self.profile.safety.heartbeat_timeout_s:
             self._drop_request()
             return State.LINK_LOST
         if self.profile.safety.require_armed and not self._armed:
@@ -291,7 +293,7 @@ class CommandCore:
             return State.DISARMED
         if self.request is None or self._request_s is None:
             return State.REFUSED if self._refused else State.IDLE
-        if now_s - self._request_s >= self.profile.command.setpoint_timeout_s or self._target(now_s) is None:
+        if now_s >= self._request_s + self.profile.command.setpoint_timeout_s or self._target(now_s) is None:
             return State.BRAKING
         return State.ACTIVE
 

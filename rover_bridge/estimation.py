@@ -344,11 +344,14 @@ class EstimateCore:
         deadlines = [now_s + 1.0]
         if self._have_wheels and self._odom_links:
             deadlines.append(now_s if self._next_odom_s is None else self._next_odom_s)
+        # Mirrors _pump_streams: one request outstanding at a time, so a queued stream waits for the
+        # pending ACK's timeout, not "now" (which would spin the loop until the ACK came).
+        pending = next((s for s in self._streams if s.state == "awaiting_ack"), None)
+        if pending is not None:
+            deadlines.append(pending.sent_s + STREAM_ACK_TIMEOUT_S)
+        elif any(s.state == "queued" for s in self._streams):
+            deadlines.append(now_s)
         for s in self._streams:
-            if s.state == "queued":
-                deadlines.append(now_s)
-            elif s.state == "awaiting_ack":
-                deadlines.append(s.sent_s + STREAM_ACK_TIMEOUT_S)
             if s.window_start_s is not None:
                 deadlines.append(s.window_start_s + RATE_WINDOW_S)
         if self._next_cal_report_s is not None:
@@ -576,7 +579,7 @@ class EstimateCore:
         out: list[Outgoing] = []
         for s in self._streams:
             if s.state == "awaiting_ack":
-                if now_s - s.sent_s < STREAM_ACK_TIMEOUT_S:
+                if now_s < s.sent_s + STREAM_ACK_TIMEOUT_S:  # the form next_deadline_s uses (float rounding)
                     return out
                 if s.attempts >= STREAM_ACK_ATTEMPTS:
                     out += self._fallback(s, now_s)
