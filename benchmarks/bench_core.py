@@ -1,4 +1,4 @@
-"""Time per call of the pure core's hot paths: IK + desaturation, odometry update, limiter step.
+"""Time per call of the pure core's hot paths: IK + desaturation, odometry, limiter, EKF and estimate flow.
 
 Prints a table (median of repeats, microseconds per call). Run: python benchmarks/bench_core.py
 Not a test: timings depend on the machine; nothing here asserts on them.
@@ -8,13 +8,22 @@ from __future__ import annotations
 
 import statistics
 import timeit
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
+from rover_bridge.estimation import EstimateCore
+from rover_bridge.estimator import WheelGyroEKF
+from rover_bridge.identity import Identity
 from rover_bridge.kinematics import DiffDrive, Twist2D
 from rover_bridge.limits import TwistLimiter, TwistLimits
+from rover_bridge.mav import MAVLinkMessage, mavlink
 from rover_bridge.odometry import WheelOdometry
+from rover_bridge.params import Profile
+from rover_bridge.report import Reporter
+from rover_bridge.wire import Incoming, Link
 
 REPEATS = 7
+# A gentle arc at 0.4 m/s, 0.2 rad/s: 20 ms of wheel distance per reading (track 0.30 m).
+D_LEFT_M, D_RIGHT_M = 0.02 * (0.4 - 0.2 * 0.15), 0.02 * (0.4 + 0.2 * 0.15)
 NUMBER = 20_000
 
 
@@ -23,6 +32,59 @@ def bench(fn: Callable[[], object]) -> tuple[float, float]:
     runs = timeit.repeat(fn, number=NUMBER, repeat=REPEATS)
     per_call_us = [r / NUMBER * 1e6 for r in runs]
     return statistics.median(per_call_us), min(per_call_us)
+
+
+def ekf_rows() -> Iterator[tuple[str, tuple[float, float]]]:
+    """The estimate flow at 50 Hz on a gentle arc: filter steps alone, then whole decoded messages."""
+    for calibrate in (False, True):
+        ekf = WheelGyroEKF(0.30, calibrate=calibrate)
+        clock = [0.0]
+
+        def gyro(ekf: WheelGyroEKF = ekf, t: list[float] = clock) -> object:
+            t[0] += 0.02
+            return ekf.update_gyro(t[0], 0.2)
+
+        def wheels(ekf: WheelGyroEKF = ekf, t: list[float] = clock) -> object:
+            t[0] += 0.02
+            return ekf.update_wheels(t[0], D_LEFT_M, D_RIGHT_M, 0.02, 0.2)
+
+        def extrapolate(ekf: WheelGyroEKF = ekf, t: list[float] = clock) -> object:
+            return ekf.extrapolate(t[0] + 0.01)
+
+        tag = "calibrate" if calibrate else "consider"
+        yield from [(f"EKF ({tag}): update_gyro", bench(gyro)), (f"EKF ({tag}): update_wheels", bench(wheels)),
+                    (f"EKF ({tag}): extrapolate", bench(extrapolate))]
+    profile = Profile()
+    identity = Identity.from_profile(profile)
+    core = EstimateCore(profile, identity, Reporter(identity))
+    ap = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def wire(msg: MAVLinkMessage) -> MAVLinkMessage:
+        return ap.decode(bytearray(msg.pack(ap)))
+
+    hb = wire(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                0, 0, 4, 3))
+    clock = [100.0, 0.0]
+    core.handle(Incoming(Link.AUTOPILOT, hb), clock[0])
+
+    def message() -> object:
+        # One wheel reading, then one gyro sample, 10 ms apart (50 Hz each), as fresh messages.
+        clock[0] += 0.01
+        k = round(clock[0] * 100)
+        if k % 2:
+            clock[1] += 0.008
+            distances = [clock[1], clock[1] * 1.1] + [0.0] * 14
+            msg = mavlink.MAVLink_wheel_distance_message(round(clock[0] * 1e6), 2, distances)
+        else:
+            msg = mavlink.MAVLink_attitude_message(round(clock[0] * 1e3), 0.0, 0.0, 0.0, 0.0, 0.0, -0.2)
+        msg._header = mavlink.MAVLink_header(msg.id, srcSystem=1, srcComponent=1)  # as if received
+        return core.handle(Incoming(Link.AUTOPILOT, msg), clock[0])
+
+    def odometry() -> object:
+        return core.odometry_message(clock[0] + 0.005)
+
+    yield ("EstimateCore.handle (wheels/gyro mix)", bench(message))
+    yield ("EstimateCore.odometry_message", bench(odometry))
 
 
 def main() -> None:
@@ -54,6 +116,7 @@ def main() -> None:
 
     rows = [
         ("IK: to_wheel_speeds + desaturate", bench(ik)),
+        *ekf_rows(),
         ("odometry: WheelOdometry.update", bench(odometry)),
         ("limiter: TwistLimiter.step (no jerk)", bench(limiter(plain))),
         ("limiter: TwistLimiter.step (jerk)", bench(limiter(jerky))),

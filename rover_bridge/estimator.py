@@ -112,7 +112,7 @@ def _arc_derivatives(d: float) -> tuple[float, float]:
 def fx(x: Vec, dt_s: float) -> Vec:
     """Motion model: move along the arc of (v, omega) for dt_s; everything else is constant."""
     out = x.copy()
-    yaw, v, w = x[IYAW], x[IV], x[IW]
+    yaw, v, w = float(x[IYAW]), float(x[IV]), float(x[IW])
     ds, dyaw = v * dt_s, w * dt_s
     a, b = arc_factors(dyaw)
     c, s = math.cos(yaw), math.sin(yaw)
@@ -123,11 +123,11 @@ def fx(x: Vec, dt_s: float) -> Vec:
     return out
 
 
-def F_jacobian(x: Vec, dt_s: float) -> Mat:
-    """d fx / d x."""
-    n = x.shape[0]
-    F = np.eye(n)
-    yaw, v, w = x[IYAW], x[IV], x[IW]
+def F_jacobian(x: Vec, dt_s: float, out: Mat | None = None) -> Mat:
+    """d fx / d x; written into `out` (an identity matrix, or one this function filled before: it
+    always writes the same entries) to spare an allocation per step."""
+    F = np.eye(x.shape[0]) if out is None else out
+    yaw, v, w = float(x[IYAW]), float(x[IV]), float(x[IW])
     ds, dyaw = v * dt_s, w * dt_s
     a, b = arc_factors(dyaw)
     da, db = _arc_derivatives(dyaw)
@@ -146,20 +146,20 @@ def F_jacobian(x: Vec, dt_s: float) -> Mat:
     return F
 
 
+def process_noise_diagonal(x: Vec, dt_s: float) -> list[float]:
+    """The diagonal of Q for one step (Q has nothing off the diagonal)."""
+    dist_m = abs(float(x[IV])) * dt_s
+    turn_rad = abs(float(x[IW])) * dt_s
+    pos = Q_POS_PER_M * dist_m
+    q = [pos, pos, Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad, Q_V * dt_s, Q_OMEGA * dt_s, Q_BIAS * dt_s]
+    if x.shape[0] == N_CAL:
+        q += [Q_CAL * dt_s, Q_CAL * dt_s]
+    return q
+
+
 def process_noise(x: Vec, dt_s: float) -> Mat:
     """Q for one step: random walks of v, omega, bias, calibration; pose noise grows with speed."""
-    n = x.shape[0]
-    Q = np.zeros((n, n))
-    dist_m = abs(x[IV]) * dt_s
-    turn_rad = abs(x[IW]) * dt_s
-    Q[IX, IX] = Q[IY, IY] = Q_POS_PER_M * dist_m
-    Q[IYAW, IYAW] = Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad
-    Q[IV, IV] = Q_V * dt_s
-    Q[IW, IW] = Q_OMEGA * dt_s
-    Q[IB, IB] = Q_BIAS * dt_s
-    if n == N_CAL:
-        Q[IKT, IKT] = Q[IKR, IKR] = Q_CAL * dt_s
-    return Q
+    return np.diag(process_noise_diagonal(x, dt_s))
 
 
 def _geometry(x: Vec) -> tuple[float, float]:
@@ -184,26 +184,29 @@ def hx_wheels(x: Vec, track_width_m: float) -> Vec:
 
 
 def H_wheels(x: Vec, track_width_m: float) -> Mat:
-    """d hx_wheels / d x."""
+    """d hx_wheels / d x (in floats, then one array: it runs for every wheel reading)."""
     n = x.shape[0]
     kt, q = _geometry(x)
     L = track_width_m
     sl, sr = 2.0 / (1.0 + q), 2.0 * q / (1.0 + q)
-    v, w = x[IV], x[IW]
-    # rows: d ul, d ur
-    dul = np.zeros(n)
-    dur = np.zeros(n)
-    dul[IV], dur[IV] = 1.0 / sl, 1.0 / sr
-    dul[IW], dur[IW] = -0.5 * L * kt / sl, 0.5 * L * kt / sr
+    v, w = float(x[IV]), float(x[IW])
+    # d ul / d x and d ur / d x at IV, IW (and IKT, IKR with calibration states)
+    dul_v, dur_v = 1.0 / sl, 1.0 / sr
+    dul_w, dur_w = -0.5 * L * kt / sl, 0.5 * L * kt / sr
+    row_v = [0.0, 0.0, 0.0, 0.5 * (dul_v + dur_v), 0.5 * (dul_w + dur_w), 0.0]
+    row_w = [0.0, 0.0, 0.0, (dur_v - dul_v) / L, (dur_w - dul_w) / L, 0.0]
     if n == N_CAL:
-        dul[IKT], dur[IKT] = -0.5 * L * w / sl, 0.5 * L * w / sr
+        dul_kt, dur_kt = -0.5 * L * w / sl, 0.5 * L * w / sr
         dsl, dsr = -2.0 / (1.0 + q) ** 2, 2.0 / (1.0 + q) ** 2
-        dul[IKR] = -(v - 0.5 * L * kt * w) / (sl * sl) * dsl
-        dur[IKR] = -(v + 0.5 * L * kt * w) / (sr * sr) * dsr
-    H = np.empty((2, n))
-    H[0] = 0.5 * (dul + dur)
-    H[1] = (dur - dul) / L
-    return H
+        dul_kr = -(v - 0.5 * L * kt * w) / (sl * sl) * dsl
+        dur_kr = -(v + 0.5 * L * kt * w) / (sr * sr) * dsr
+        row_v += [0.5 * (dul_kt + dur_kt), 0.5 * (dul_kr + dur_kr)]
+        row_w += [(dur_kt - dul_kt) / L, (dur_kr - dul_kr) / L]
+    return np.array([row_v, row_w])
+
+
+# H of the gyro for each state size (constant: the gyro reads omega + bias).
+_H_GYRO = {n: np.array([[1.0 if i in (IW, IB) else 0.0 for i in range(n)]]) for n in (N_BASE, N_CAL)}
 
 
 def hx_gyro(x: Vec) -> Vec:
@@ -273,6 +276,10 @@ class WheelGyroEKF:
         self._wheels_prev: tuple[float, float] | None = None  # (time, v after that update)
         self._moved_since_wheels_m = 0.0
         self._gyro_R = np.array([[self.noise.gyro_noise_rad_s ** 2]])
+        self._gyro_var = self.noise.gyro_noise_rad_s ** 2
+        self._F = np.eye(n)  # reused by every prediction step (F_jacobian writes the same entries)
+        self._estimated = np.ones(n)  # 1 for estimated states, 0 for considered ones: masks the gain
+        self._estimated[self._consider] = 0.0
         self._gate2 = self.noise.gate_sigma ** 2
         self.rejects_in_row = {"wheels": 0, "gyro": 0}
         self._init_state(pose if pose is not None else Pose2D())
@@ -313,12 +320,13 @@ class WheelGyroEKF:
         # step would add the speed noise to the speed only, not to the position it moves).
         steps = max(1, math.ceil(total / MAX_PREDICT_STEP_S))
         dt = total / steps
+        ekf = self.ekf
         for _ in range(steps):
-            x = self.ekf.x
-            self.ekf.F = F_jacobian(x, dt)
-            self.ekf.Q = process_noise(x, dt)
-            self.ekf.x = fx(x, dt)
-            self.ekf.P = self.ekf.F @ self.ekf.P @ self.ekf.F.T + self.ekf.Q
+            x = ekf.x
+            F = F_jacobian(x, dt, self._F)
+            P = F @ ekf.P @ F.T
+            P.flat[:: self.n + 1] += process_noise_diagonal(x, dt)  # Q is diagonal
+            ekf.x, ekf.P = fx(x, dt), P
             self._turned_since_gyro_rad += float(x[IW]) * dt
             self._moved_since_wheels_m += float(x[IV]) * dt
         self.time_s = t_s
@@ -377,38 +385,53 @@ class WheelGyroEKF:
         self.rejects_in_row[sensor] += 1
         return False
 
-    def _update(self, z: Vec, H: Mat, hx: Vec, R: Mat) -> None:
-        """EKF update. Without calibration the geometry states are *consider* states (Schmidt-Kalman):
-        their gain rows are zero, so they stay at nominal, but their uncertainty still weighs every
-        update - a wheel-geometry error is systematic, and without this the filter would average it
-        over thousands of samples and learn it as gyro bias (2 % radius error at 0.8 m/s looks like
-        0.05 rad/s of bias)."""
-        consider = self._consider
-        if not consider:
-            self.ekf.update(z, lambda _x: H, lambda _x: hx, R=R)
+    def _update(self, y: Vec, H: Mat, S: Mat, R: Mat) -> None:
+        """EKF update with innovation y = z - h(x) and its covariance S = H P H' + R.
+
+        Without calibration the geometry states are *consider* states (Schmidt-Kalman): their gain
+        rows are zero, so they stay at nominal, but their uncertainty still weighs every update - a
+        wheel-geometry error is systematic, and without this the filter would average it over
+        thousands of samples and learn it as gyro bias (2 % radius error at 0.8 m/s looks like
+        0.05 rad/s of bias). With calibration nothing is considered and this is the textbook update
+        (tests check it against filterpy's ExtendedKalmanFilter.update).
+
+        The covariance uses the form that is exact for any gain (Joseph's, expanded):
+        P - K H P - P H' K' + K S K', written as P - A - A' with A = K (P H' - K S / 2)'. Closed-form
+        inverses of the 1x1 and 2x2 S: numpy's generic inverse costs more than the rest together.
+        """
+        ekf = self.ekf
+        P = ekf.P
+        PHT = P @ H.T
+        if S.shape[0] == 1:
+            K = PHT * (1.0 / float(S[0, 0]))
         else:
-            P = self.ekf.P
-            PHT = P @ H.T
-            K = PHT @ np.linalg.inv(H @ PHT + R)
-            K[consider, :] = 0.0
-            self.ekf.x = self.ekf.x + K @ (z - hx)
-            I_KH = np.eye(self.n) - K @ H
-            self.ekf.P = I_KH @ P @ I_KH.T + K @ R @ K.T  # Joseph form: valid for any gain
-        self.ekf.x[IYAW] = wrap_angle(float(self.ekf.x[IYAW]))
+            a, b, c, d = float(S[0, 0]), float(S[0, 1]), float(S[1, 0]), float(S[1, 1])
+            det = a * d - b * c
+            K = PHT @ np.array([[d / det, -b / det], [-c / det, a / det]])
+        if self._consider:
+            K *= self._estimated[:, None]
+        ekf.x = ekf.x + K @ y
+        A = K @ (PHT - 0.5 * (K @ S)).T
+        ekf.P = P - A - A.T
+        ekf.x[IYAW] = wrap_angle(float(ekf.x[IYAW]))
 
     def gyro_innovation_d2(self, omega_rad_s: float) -> float:
-        H = H_gyro(self.ekf.x)
-        y = omega_rad_s - float(hx_gyro(self.ekf.x)[0])
-        S = float((H @ self.ekf.P @ H.T)[0, 0]) + float(self._gyro_R[0, 0])
-        return y * y / S
+        return self._gyro_innovation(omega_rad_s)[2]
+
+    def _gyro_innovation(self, omega_rad_s: float) -> tuple[float, float, float]:
+        """(y, S, d2) of a gyro sample: H = d(omega + bias)/dx picks two states, so all of it is scalar."""
+        x, P = self.ekf.x, self.ekf.P
+        y = omega_rad_s - (float(x[IW]) + float(x[IB]))
+        S = float(P[IW, IW]) + 2.0 * float(P[IW, IB]) + float(P[IB, IB]) + self._gyro_var
+        return y, S, y * y / S
 
     def update_gyro(self, t_s: float, omega_rad_s: float) -> bool:
         """Fuse one gyro yaw rate (CCW +, rad/s). False when it failed the gate (not fused)."""
         self.predict_to(t_s)
-        if not self._gate("gyro", self.gyro_innovation_d2(omega_rad_s)):
+        y, S, d2 = self._gyro_innovation(omega_rad_s)
+        if not self._gate("gyro", d2):
             return False
-        x = self.ekf.x
-        self._update(np.array([omega_rad_s]), H_gyro(x), hx_gyro(x), self._gyro_R)
+        self._update(np.array([y]), _H_GYRO[self.n], np.array([[S]]), self._gyro_R)
         # Trapezoid: the prediction turned at piecewise-constant rates, while the body's rate moved
         # from the last gyro sample's to this one's. Without this every change of yaw rate leaves a
         # heading error of (change x half a sample period), 1.3 deg per spin at 20 Hz.
@@ -484,15 +507,16 @@ class WheelGyroEKF:
             R[0, 0] *= SLIP_V_VAR_FACTOR
         x, P = self.ekf.x, self.ekf.P
         H = H_wheels(x, L)
-        hx = hx_wheels(x, L)
-        y = z - hx
+        y = z - hx_wheels(x, L)
         S = H @ P @ H.T + R
-        d2 = float(y @ np.linalg.solve(S, y))
+        y0, y1 = float(y[0]), float(y[1])
+        s00, s01, s11 = float(S[0, 0]), 0.5 * (float(S[0, 1]) + float(S[1, 0])), float(S[1, 1])
+        d2 = (s11 * y0 * y0 - 2.0 * s01 * y0 * y1 + s00 * y1 * y1) / (s00 * s11 - s01 * s01)  # y' S^-1 y
         # Only the velocity part decides the gate when the yaw part is already down-weighted.
-        gate_d2 = float(y[0] * y[0] / S[0, 0]) if slip else d2 / 2.0
+        gate_d2 = y0 * y0 / s00 if slip else d2 / 2.0
         if not self._gate("wheels", gate_d2):
             return WheelUpdate(False, slip, stationary, slip_d2, d2)
-        self._update(z, H, hx, R)
+        self._update(y, H, S, R)
         # Trapezoid for the distance, as update_gyro does for the heading: the speed moved from the
         # last update's to this one's while the prediction used piecewise-constant speeds.
         v_now = float(self.ekf.x[IV])

@@ -1,5 +1,8 @@
 """EKF models: Jacobians against finite differences, hand-derived motion cases, gating, slip."""
 
+# Kalman-filter notation (P, H, R, S, K) reads better than pep8 names here.
+# ruff: noqa: N806
+
 from __future__ import annotations
 
 import math
@@ -179,3 +182,51 @@ def test_set_pose_keeps_velocity_and_shrinks_pose_uncertainty() -> None:
     assert ekf.pose == Pose2D(1.0, -2.0, 0.5)
     assert float(ekf.x[IV]) == pytest.approx(0.5, abs=0.01)
     assert float(ekf.P[IX, IX]) < 1e-5 and float(ekf.P[IX, IV]) == 0.0
+
+
+# ---------------------------------------------------------------- the hand-written update
+
+def _random_state(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    x = np.array([0.3, -0.2, 0.4, 0.6, 0.3, 0.01, 1.02, 0.98]) + rng.normal(0.0, 0.05, N_CAL)
+    A = rng.normal(0.0, 0.1, (N_CAL, N_CAL))
+    return x, A @ A.T + np.diag(rng.uniform(1e-4, 1e-2, N_CAL))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_update_with_calibration_equals_filterpys_ekf_update(seed: int) -> None:
+    """With nothing considered, the fast update is the textbook EKF update: filterpy's."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    rng = np.random.default_rng(seed)
+    x, P = _random_state(rng)
+    ekf = WheelGyroEKF(L, calibrate=True)
+    ekf.ekf.x, ekf.ekf.P = x.copy(), P.copy()
+    ref = ExtendedKalmanFilter(dim_x=N_CAL, dim_z=2)
+    ref.x, ref.P = x.copy(), P.copy()
+    H, hx = H_wheels(x, L), hx_wheels(x, L)
+    z = hx + rng.normal(0.0, 0.05, 2)
+    R = wheel_noise(0.02, 0.025, 0.05, L, NoiseModel())
+    ekf._update(z - hx, H, H @ P @ H.T + R, R)
+    ref.update(z, lambda _x: H, lambda _x: hx, R=R)
+    ref.x[IYAW] = math.remainder(float(ref.x[IYAW]), 2.0 * math.pi)
+    np.testing.assert_allclose(ekf.x, ref.x, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ekf.P, ref.P, rtol=1e-7, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_consider_update_equals_the_joseph_form_with_zero_gain_rows(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    x, P = _random_state(rng)
+    ekf = WheelGyroEKF(L, calibrate=False)
+    ekf.ekf.x, ekf.ekf.P = x.copy(), P.copy()
+    H = H_gyro(x)
+    R = np.array([[0.005**2]])
+    y = np.array([0.03])
+    S = H @ P @ H.T + R
+    ekf._update(y, H, S, R)
+    K = P @ H.T @ np.linalg.inv(S)
+    K[[IKT, IKR], :] = 0.0
+    I_KH = np.eye(N_CAL) - K @ H
+    np.testing.assert_allclose(ekf.x, x + K @ y, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ekf.P, I_KH @ P @ I_KH.T + K @ R @ K.T, rtol=1e-7, atol=1e-12)
+    assert ekf.x[IKT] == x[IKT] and ekf.x[IKR] == x[IKR]  # considered: never moved
