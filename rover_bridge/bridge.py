@@ -123,6 +123,9 @@ class CommandCore:
 
     # ----------------------------------------------------------------- SubCore protocol
 
+    # What handle() reads from the autopilot link (Core decodes nothing else from it).
+    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK"})
+
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
         if self.state is State.STOPPED:
             return NOTHING

@@ -16,8 +16,8 @@ from rover_bridge.identity import Identity
 from rover_bridge.mav import mavlink
 from rover_bridge.params import Profile
 from rover_bridge.report import Reporter
-from rover_bridge.security import CommandGate
-from rover_bridge.wire import Incoming, Link, Outgoing, Reaction
+from rover_bridge.security import BRIDGE_COMMANDS, CommandGate
+from rover_bridge.wire import NOTHING, Incoming, Link, Outgoing, Reaction
 
 HEARTBEAT_PERIOD_S = 1.0
 
@@ -40,8 +40,18 @@ class Core:
         self.gate = CommandGate(profile, self.identity, self.reporter)
         self._subcores: tuple[SubCore, ...] = (self.command, self.estimate)
         self._next_heartbeat_s: float | None = None
+        names = CommandCore.AUTOPILOT_READS | EstimateCore.AUTOPILOT_READS | BRIDGE_COMMANDS
+        self._autopilot_reads = frozenset(getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in names)
+
+    def reads(self, link: Link) -> frozenset[int] | None:
+        """Message ids the core reads from `link` (None: all). The shell decodes only these and
+        forwards the rest as raw bytes; handle() ignores the rest too, so both paths behave alike.
+        Everything from a ground station is read: the security gate judges every frame."""
+        return self._autopilot_reads if link is Link.AUTOPILOT else None
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
+        if inc.link is Link.AUTOPILOT and inc.msg.get_msgId() not in self._autopilot_reads:
+            return NOTHING
         refused = self.gate.check(inc, now_s)
         if refused is not None:
             return refused

@@ -295,6 +295,10 @@ class EstimateCore:
         )
 
     # ------------------------------------------------------------------ SubCore
+    # What handle() reads from the autopilot link (Core decodes nothing else from it).
+    AUTOPILOT_READS = frozenset({"COMMAND_LONG", "HEARTBEAT", "WHEEL_DISTANCE", "ATTITUDE", "SCALED_IMU", "RAW_IMU",
+                                 "SYSTEM_TIME", "COMMAND_ACK"})
+
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
         msg = inc.msg
         mtype = msg.get_type()

@@ -11,9 +11,11 @@ import contextlib
 import logging
 import socket
 import struct
+from dataclasses import dataclass
 from typing import Any
 
 from rover_bridge.errors import ConfigError
+from rover_bridge.framing import Framer, crc_ok, msg_id
 from rover_bridge.mav import MAVLinkMessage, mavlink, mavutil
 from rover_bridge.wire import Link
 
@@ -44,6 +46,13 @@ def check_url(url: str) -> str | None:
         return None
     return (f"{url!r}: not a pymavlink connection string (udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
             "tcpin:HOST:PORT or /dev/ttyXXX,BAUD)")
+
+
+@dataclass(frozen=True, slots=True)
+class RawFrame:
+    """A valid frame (CRC checked) that no core reads: forwarded and logged as is, never decoded."""
+
+    frame: bytes
 
 
 class Endpoint:
@@ -77,6 +86,8 @@ class Endpoint:
             # bridge that a busy companion computer deschedules for a few tens of ms drops nothing.
             with contextlib.suppress(OSError):
                 port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF_BYTES)
+        self.framer = Framer()
+        self._decode_ids: frozenset[int] | None = None
         self.rx_frames = 0
         self.rx_bad = 0
         self.tx_frames = 0
@@ -85,44 +96,61 @@ class Endpoint:
         fd = getattr(self.conn, "fd", None)
         return fd if isinstance(fd, int) and fd >= 0 else None
 
-    def read(self, limit: int = 10_000) -> list[MAVLinkMessage]:
-        """Every frame that has arrived, decoded; bad frames are counted and dropped here.
+    def decode_only(self, msg_ids: frozenset[int] | None) -> None:
+        """Decode only frames with these message ids; hand the others on as RawFrame (None: decode all)."""
+        self._decode_ids = msg_ids
 
-        The hot path of the bridge. It does what `conn.recv_msg()` does minus mavutil's
-        per-message bookkeeping (`post_message`: per-sysid message tables, loss counts, wall-clock
-        stamps), which nothing here uses and which cost about as much as the decoding itself:
-        read what the link has (one datagram, or up to RECV_CHUNK bytes of a stream), then take
-        every complete frame out of the parser, one at a time so that an exception on one frame
-        drops only that frame (pymavlink raises on a few malformed inputs even with robust parsing).
+    def read(self, limit: int = 10_000) -> list[MAVLinkMessage | RawFrame]:
+        """Every frame that has arrived: decoded, or a RawFrame when no core reads its id (see
+        decode_only); bad frames are counted and dropped here.
+
+        The hot path of the bridge. It reads what the link has (one datagram, or up to RECV_CHUNK
+        bytes of a stream) and delimits frames itself (rover_bridge.framing, as pymavlink's robust
+        parser would), then decodes a frame with pymavlink's `decode` only if a core reads it: most
+        of an autopilot's telemetry is only forwarded, and a forwarded frame needs its CRC checked,
+        not a message object. mavutil's `recv_msg` bookkeeping (per-sysid tables, loss counts) is
+        skipped too; nothing here uses it. An exception on one frame drops only that frame.
         """
-        out: list[MAVLinkMessage] = []
+        out: list[MAVLinkMessage | RawFrame] = []
         conn = self.conn
-        for _ in range(limit):
-            try:
-                data = conn.recv(RECV_CHUNK)
-                if data and conn.first_byte:
+        framer = self.framer
+        wanted = self._decode_ids
+        reads = 0
+        while len(out) < limit:
+            item = framer.next()
+            if item is None:
+                if reads >= limit:
+                    break  # a link feeding only junk must not keep the loop here either
+                reads += 1
+                try:
+                    data = conn.recv(RECV_CHUNK)
+                except OSError as exc:
+                    log.debug("%s: read failed: %s", self.url, exc)
+                    break
+                if not data:
+                    break  # nothing new arrived and no complete frame is buffered
+                if conn.first_byte:
                     conn.auto_mavlink_version(data)  # as recv_msg: may swap conn.mav (MAVLink 1 peer)
-                msg = conn.mav.parse_char(data)
+                framer.feed(data)
+                continue
+            good, frame = item
+            if not good:
+                self.rx_bad += 1
+                continue
+            if wanted is not None and msg_id(frame) not in wanted:
+                if crc_ok(frame):
+                    self.rx_frames += 1
+                    out.append(RawFrame(frame))
+                else:
+                    self.rx_bad += 1
+                continue
+            try:
+                msg = conn.mav.decode(bytearray(frame))
             except _DECODE_ERRORS as exc:
                 self._dropped(exc)
                 continue
-            if msg is None:
-                if not data:
-                    break  # nothing new arrived and nothing complete is buffered
-                continue  # a partial frame from a stream link: read on
-            while msg is not None:
-                if msg.get_type() == "BAD_DATA":
-                    self.rx_bad += 1
-                else:
-                    self.rx_frames += 1
-                    out.append(msg)
-                if len(out) >= limit:
-                    return out  # the rest stays buffered in the parser for the next read
-                try:
-                    msg = conn.mav.parse_char(b"")
-                except _DECODE_ERRORS as exc:
-                    self._dropped(exc)
-                    msg = None
+            self.rx_frames += 1
+            out.append(msg)
         return out
 
     def _dropped(self, exc: Exception) -> None:

@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 from typing import BinaryIO
 
 from rover_bridge.core import Core
-from rover_bridge.links import Endpoint
+from rover_bridge.links import Endpoint, RawFrame
 from rover_bridge.mav import MAVLinkMessage
 from rover_bridge.security import carries_signature
 from rover_bridge.wire import Incoming, Link, Outgoing
@@ -66,6 +66,8 @@ class Runner:
         self.ticks = 0
         self.backlog = False
         self._stopped = False
+        for ep in self.endpoints:
+            ep.decode_only(core.reads(ep.role))
 
     @property
     def endpoints(self) -> list[Endpoint]:
@@ -85,7 +87,17 @@ class Runner:
             self.ticks += 1
             self.send_all(self.core.tick(now_s))
 
-    def _on_message(self, ep: Endpoint, msg: MAVLinkMessage, now_s: float) -> None:
+    def _on_message(self, ep: Endpoint, msg: MAVLinkMessage | RawFrame, now_s: float) -> None:
+        if type(msg) is RawFrame:  # no core reads it: log and forward the bytes
+            frame = msg.frame
+            if self.tlog is not None:
+                self.tlog.write(frame)
+            for other in (self.gcs if ep.role is Link.AUTOPILOT else [self.autopilot, *self.gcs]):
+                if other is not ep:
+                    other.write_frame(frame)
+                    self.forwarded += 1
+            return
+        assert not isinstance(msg, RawFrame)  # for mypy: type() narrows nothing
         frame = bytes(msg.get_msgbuf())  # one copy, shared by the log and every forward
         if self.tlog is not None:
             self.tlog.write(frame)
