@@ -2,7 +2,7 @@
 
 `udpin:HOST:PORT` listens, `udpout:HOST:PORT` sends to a listener, `tcp:HOST:PORT` connects,
 `tcpin:HOST:PORT` listens, `/dev/ttyACM0,921600` is a serial port. Reads never block: the
-runner waits on the file descriptors with select() and then drains every link.
+runner waits on the file descriptors with select() and then reads the readable links.
 """
 
 from __future__ import annotations
@@ -23,6 +23,9 @@ log = logging.getLogger("rover_bridge.links")
 
 # Receive buffer asked for UDP links (the kernel caps it at net.core.rmem_max).
 UDP_RCVBUF_BYTES = 1 << 20
+# Largest write of forwarded frames: several frames per datagram, but within a 1500-byte Ethernet or
+# Wi-Fi MTU (IP and UDP headers included), so no datagram is ever fragmented on the way to a GCS.
+MAX_WRITE_BYTES = 1400
 # Bytes asked of a stream link (tcp, serial) per read; a UDP link returns one whole datagram anyway.
 RECV_CHUNK = 4096
 # What decoding may raise on hostile input; caught per frame, counted as bad, never fatal.
@@ -87,6 +90,7 @@ class Endpoint:
             with contextlib.suppress(OSError):
                 port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF_BYTES)
         self.framer = Framer()
+        self._pending: list[bytes] = []
         self._decode_ids: frozenset[int] | None = None
         self.rx_frames = 0
         self.rx_bad = 0
@@ -161,6 +165,29 @@ class Endpoint:
         """Forward a frame byte for byte (source ids, sequence and signature untouched)."""
         self.conn.write(frame)
         self.tx_frames += 1
+
+    def queue_frame(self, frame: bytes) -> None:
+        """Forward a frame byte for byte with the next flush() (the runner flushes after every pass)."""
+        self._pending.append(frame)
+
+    def flush(self) -> None:
+        """Write the queued frames in as few writes as fit: MAVLink receivers parse a datagram (or a
+        stream) as a sequence of frames, and a write (a datagram) per frame is most of the cost of
+        forwarding a busy link. Datagrams stay under MAX_WRITE_BYTES (no IP fragmentation)."""
+        pending = self._pending
+        if not pending:
+            return
+        self._pending = []
+        chunk: list[bytes] = []
+        size = 0
+        for frame in pending:
+            if chunk and size + len(frame) > MAX_WRITE_BYTES:
+                self.conn.write(b"".join(chunk))
+                chunk, size = [], 0
+            chunk.append(frame)
+            size += len(frame)
+        self.conn.write(b"".join(chunk))
+        self.tx_frames += len(pending)
 
     def send(self, msg: MAVLinkMessage, src_system: int, src_component: int) -> bytes:
         """Pack `msg` with the given source ids, write it, and return the bytes written."""

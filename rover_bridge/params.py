@@ -162,6 +162,10 @@ class MavlinkParams:
     vehicle_system_id: int = _p(0, "The vehicle's system id; 0 learns it from the autopilot's heartbeat.",
                                 lo=0, hi=255)
     component_id: int = _p(191, "The bridge's own component id (MAV_COMP_ID_ONBOARD_COMPUTER).", lo=1, hi=255)
+    autopilot_batch_ms: float = _p(
+        20.0, "After reading the autopilot link, wait this long before waking for it again (its telemetry is "
+        "then read in batches, and on every other wake-up); 0 wakes for every datagram. Ground-station "
+        "links always wake at once.", unit="ms", lo=0.0, hi=50.0)
 
 
 @dataclass(frozen=True, slots=True)

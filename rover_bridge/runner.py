@@ -34,7 +34,7 @@ MAX_SLEEP_S = 0.05
 # Frames `run()` takes from one link per pass. Between passes it reads the clock again and serves
 # due deadlines, so a flooding link delays the control output by at most this many frames (instead
 # of its whole backlog) and cannot starve the other links.
-RUN_BATCH = 4
+RUN_BATCH = 16
 
 
 class TlogWriter:
@@ -65,6 +65,14 @@ class Runner:
         self.consumed = 0
         self.ticks = 0
         self.backlog = False
+        self.next_deadline_s = 0.0
+        self.passes = 0
+        # The autopilot's telemetry is read in batches (mavlink.autopilot_batch_ms): after a read its
+        # link is not watched until the batch time has passed; every wake-up still reads it. Its
+        # frames carry their own timestamps, which is what the estimator runs on, so a batch changes
+        # only when they are forwarded, not the estimate.
+        self._ap_batch_s = core.profile.mavlink.autopilot_batch_ms * 1e-3
+        self._ap_read_s = -1e9
         self._stopped = False
         for ep in self.endpoints:
             ep.decode_only(core.reads(ep.role))
@@ -73,19 +81,27 @@ class Runner:
     def endpoints(self) -> list[Endpoint]:
         return [self.autopilot, *self.gcs]
 
-    def step(self, now_s: float, max_frames: int | None = None) -> None:
-        """Drain every link (at most `max_frames` from each), handle every frame, then tick if a
-        deadline is due. Never blocks. `backlog` tells whether a link may have more frames waiting."""
+    def step(self, now_s: float, max_frames: int | None = None, ready: Sequence[Endpoint] | None = None) -> None:
+        """Drain every link (at most `max_frames` from each; only the `ready` ones if given), handle
+        every frame, then tick if a deadline is due. Never blocks. `backlog` tells whether a link may
+        have more frames waiting; `next_deadline_s` is the core's next deadline after this pass."""
         self.backlog = False
-        for ep in self.endpoints:
+        for ep in self.endpoints if ready is None else ready:
             msgs = ep.read() if max_frames is None else ep.read(max_frames)
+            if msgs and ep is self.autopilot:
+                self._ap_read_s = now_s  # a silent link is not batched: it stays watched
             if max_frames is not None and len(msgs) >= max_frames:
-                self.backlog = True  # more may be queued, possibly inside the parser where select() cannot see it
+                self.backlog = True  # more may be queued, possibly in the framer where select() cannot see it
             for msg in msgs:
                 self._on_message(ep, msg, now_s)
-        if now_s >= self.core.next_deadline_s(now_s):
+        for ep in self.endpoints:
+            ep.flush()  # this pass's forwarded frames, in as few writes as fit
+        deadline = self.core.next_deadline_s(now_s)
+        if now_s >= deadline:
             self.ticks += 1
             self.send_all(self.core.tick(now_s))
+            deadline = self.core.next_deadline_s(now_s)
+        self.next_deadline_s = deadline
 
     def _on_message(self, ep: Endpoint, msg: MAVLinkMessage | RawFrame, now_s: float) -> None:
         if type(msg) is RawFrame:  # no core reads it: log and forward the bytes
@@ -94,7 +110,7 @@ class Runner:
                 self.tlog.write(frame)
             for other in (self.gcs if ep.role is Link.AUTOPILOT else [self.autopilot, *self.gcs]):
                 if other is not ep:
-                    other.write_frame(frame)
+                    other.queue_frame(frame)
                     self.forwarded += 1
             return
         assert not isinstance(msg, RawFrame)  # for mypy: type() narrows nothing
@@ -108,7 +124,7 @@ class Runner:
             targets = self.gcs if ep.role is Link.AUTOPILOT else [self.autopilot, *self.gcs]
             for other in targets:
                 if other is not ep:
-                    other.write_frame(frame)
+                    other.queue_frame(frame)
                     self.forwarded += 1
         if reaction.out:
             self.send_all(reaction.out)
@@ -121,22 +137,34 @@ class Runner:
                 if self.tlog is not None and ep is dests[0]:
                     self.tlog.write(frame)
 
-    def wait(self, now_s: float, clock: Callable[[], float], extra_fds: Sequence[int] = ()) -> None:
-        """Sleep until a link is readable, an extra fd (signal wake-up) is, or the next deadline."""
-        timeout = min(MAX_SLEEP_S, max(0.0, self.core.next_deadline_s(now_s) - clock()))
-        fds = [fd for fd in (ep.fileno() for ep in self.endpoints) if fd is not None] + list(extra_fds)
-        if timeout > 0.0:
-            select.select(fds, [], [], timeout)
+    def wait(self, clock: Callable[[], float], extra_fds: Sequence[int] = ()) -> list[Endpoint]:
+        """Sleep until a link is readable, an extra fd (signal wake-up) is, or the next deadline.
+        Returns the links worth reading now: the readable ones, and the autopilot's on every wake-up
+        (unless it is neither readable nor batched); every link if it did not sleep."""
+        now = clock()
+        timeout = min(MAX_SLEEP_S, self.next_deadline_s - now)
+        resting = now < self._ap_read_s + self._ap_batch_s
+        if resting:
+            timeout = min(timeout, self._ap_read_s + self._ap_batch_s - now)
+        if timeout <= 0.0:
+            return self.endpoints
+        fds = [fd for fd in (ep.fileno() for ep in self.endpoints if not (resting and ep is self.autopilot))
+               if fd is not None]
+        readable, _, _ = select.select(fds + list(extra_fds), [], [], timeout)
+        # The resting autopilot link is read on every wake-up (its batch); a link without a file
+        # descriptor cannot be waited on, so it is read on every pass.
+        return [ep for ep in self.endpoints
+                if ep.fileno() is None or ep.fileno() in readable or (resting and ep is self.autopilot)]
 
     def run(self, should_stop: Callable[[], bool], clock: Callable[[], float] = time.monotonic,
             wake_fd: int | None = None) -> None:
         """Serve until `should_stop()`; the caller then calls `stop_safely` (also on exceptions)."""
         extra = [wake_fd] if wake_fd is not None else []
+        ready: list[Endpoint] | None = None
         while not should_stop():
-            now = clock()
-            self.step(now, RUN_BATCH)
-            if not self.backlog:
-                self.wait(now, clock, extra)
+            self.passes += 1
+            self.step(clock(), RUN_BATCH, ready)
+            ready = None if self.backlog else self.wait(clock, extra)
             if wake_fd is not None:
                 _drain(wake_fd)
 

@@ -120,7 +120,8 @@ def write_stats(path: str, runner: Runner, verifier: SignatureVerifier | None = 
     stats = {
         "command": dict(core.command.counters),
         "estimate": dict(core.estimate.counters),
-        "runner": {"forwarded": runner.forwarded, "consumed": runner.consumed, "ticks": runner.ticks},
+        "runner": {"forwarded": runner.forwarded, "consumed": runner.consumed, "ticks": runner.ticks,
+                   "passes": runner.passes},
         "links": {ep.url: {"rx": ep.rx_frames, "rx_bad": ep.rx_bad, "tx": ep.tx_frames} for ep in runner.endpoints},
         "statustext_suppressed": dict(core.reporter.limiter.suppressed),
         "security": dict(core.gate.counters),

@@ -1,0 +1,154 @@
+"""The shell's I/O economy over real loopback sockets: forwarded frames share datagrams, the
+autopilot's telemetry is read in batches, a ground station's request still wakes the loop at once."""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from rover_bridge.core import Core
+from rover_bridge.demo import free_udp_port
+from rover_bridge.framing import Framer
+from rover_bridge.links import MAX_WRITE_BYTES, Endpoint
+from rover_bridge.mav import mavlink
+from rover_bridge.params import Profile
+from rover_bridge.runner import Runner
+from rover_bridge.wire import Link
+
+LOCAL = "127.0.0.1"
+BATCH_MS = 40.0
+
+
+def _telemetry(n: int) -> list[bytes]:
+    """VFR_HUD frames from the autopilot (no core reads them: forwarded raw), distinct payloads."""
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    return [bytes(mavlink.MAVLink_vfr_hud_message(0.01 * i, 0.0, i % 360, 0, 0.0, 0.0).pack(mav)) for i in range(n)]
+
+
+class Rig:
+    def __init__(self, batch_ms: float = BATCH_MS) -> None:
+        profile = Profile()
+        batched = dataclasses.replace(profile.mavlink, autopilot_batch_ms=batch_ms)
+        profile = dataclasses.replace(profile, mavlink=batched)
+        self.ap_port, self.gcs_port = free_udp_port(), free_udp_port()
+        self.runner = Runner(Core(profile), Endpoint(f"udpin:{LOCAL}:{self.ap_port}", Link.AUTOPILOT),
+                             [Endpoint(f"udpin:{LOCAL}:{self.gcs_port}", Link.GCS)])
+        self.ap = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.gcs.settimeout(1.0)
+        # Both peers introduce themselves (udpin learns where to send).
+        self.to_ap(_telemetry(1)[0])
+        gcs_hb = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3)
+        self.gcs.sendto(gcs_hb.pack(mavlink.MAVLink(None, 255, 190)), (LOCAL, self.gcs_port))
+        time.sleep(0.05)
+        self.runner.step(time.monotonic())
+        self.drain_gcs()  # the introduction, forwarded, and the bridge's first messages
+
+    def drain_gcs(self) -> None:
+        self.gcs.setblocking(False)
+        try:
+            while self.gcs.recv(65536):
+                pass
+        except BlockingIOError:
+            pass
+        self.gcs.settimeout(1.0)
+
+    def to_ap(self, frame: bytes) -> None:
+        self.ap.sendto(frame, (LOCAL, self.ap_port))
+
+    def close(self) -> None:
+        self.runner.close()
+        self.ap.close()
+        self.gcs.close()
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    r = Rig()
+    yield r
+    r.close()
+
+
+def _frames_in(datagram: bytes) -> list[bytes]:
+    framer = Framer()
+    framer.feed(datagram)
+    out = []
+    while (item := framer.next()) is not None:
+        assert item[0]
+        out.append(item[1])
+    assert framer.buffered == 0
+    return out
+
+
+def test_frames_forwarded_in_one_pass_share_datagrams_in_order(rig: Rig) -> None:
+    frames = _telemetry(61)[1:]  # 60 frames (not the introduction's), 1724 bytes: two datagrams' worth
+    for f in frames:
+        rig.to_ap(f)
+    time.sleep(0.05)
+    tx_before = rig.runner.autopilot.tx_frames, rig.runner.gcs[0].tx_frames
+    rig.runner.step(time.monotonic())
+    received: list[bytes] = []
+    datagrams = 0
+    while len(received) < len(frames):
+        data = rig.gcs.recv(65536)
+        assert len(data) <= MAX_WRITE_BYTES
+        received += [f for f in _frames_in(data) if f[7] == mavlink.MAVLINK_MSG_ID_VFR_HUD]
+        datagrams += 1
+    assert received == frames  # byte for byte, in order
+    assert datagrams == -(-sum(map(len, frames)) // MAX_WRITE_BYTES)
+    assert rig.runner.gcs[0].tx_frames - tx_before[1] >= len(frames)  # counted per frame, not per datagram
+
+
+def test_autopilot_telemetry_waits_for_its_batch_but_a_gcs_frame_wakes_at_once(rig: Rig) -> None:
+    clock = time.monotonic
+    rig.to_ap(_telemetry(1)[0])
+    time.sleep(0.02)
+    rig.runner.step(clock())  # reads the autopilot link: its batch time starts now
+    read_at = clock()
+    rig.to_ap(_telemetry(2)[1])
+    rig.runner.next_deadline_s = clock() + 10.0  # no tick in the way: only the links can end the wait
+    ready = rig.runner.wait(clock)
+    waited_s = clock() - read_at
+    assert rig.runner.autopilot in ready
+    assert waited_s >= 0.8 * BATCH_MS * 1e-3  # not woken by the autopilot's datagram
+    rig.runner.step(clock())
+    rig.to_ap(_telemetry(3)[2])
+    start = clock()
+    rig.gcs.sendto(_telemetry(1)[0], (LOCAL, rig.gcs_port))  # anything from the GCS side
+    rig.runner.next_deadline_s = clock() + 10.0
+    ready = rig.runner.wait(clock)
+    assert clock() - start < 0.5 * BATCH_MS * 1e-3
+    assert rig.runner.gcs[0] in ready and rig.runner.autopilot in ready  # the batch is read on this wake-up
+
+
+def test_a_silent_autopilot_link_is_watched_not_polled(rig: Rig) -> None:
+    clock = time.monotonic
+    time.sleep(BATCH_MS * 1e-3)  # the introduction's batch is over
+    rig.runner.step(clock())  # nothing to read: no batch starts
+    time.sleep(0.002)
+    rig.to_ap(_telemetry(1)[0])
+    start = clock()
+    rig.runner.next_deadline_s = clock() + 10.0
+    ready = rig.runner.wait(clock)
+    assert clock() - start < 0.5 * BATCH_MS * 1e-3
+    assert ready == [rig.runner.autopilot]
+
+
+def test_zero_batch_wakes_for_every_autopilot_datagram() -> None:
+    r = Rig(batch_ms=0.0)
+    try:
+        clock = time.monotonic
+        r.to_ap(_telemetry(1)[0])
+        time.sleep(0.01)
+        r.runner.step(clock())
+        r.to_ap(_telemetry(2)[1])
+        start = clock()
+        r.runner.next_deadline_s = clock() + 10.0
+        ready = r.runner.wait(clock)
+        assert clock() - start < 0.01 and r.runner.autopilot in ready
+    finally:
+        r.close()
