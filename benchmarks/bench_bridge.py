@@ -142,6 +142,17 @@ def drain(sock: socket.socket) -> int:
         n += 1
 
 
+def forwarded_frames(buf: bytearray, size: int) -> int:
+    """Flood frames in one datagram from the bridge (it packs several forwarded frames into one):
+    frames from the emulated autopilot, not the COMMAND_ACKs the harness sent for stream requests."""
+    n, i = 0, 0
+    while i + 10 <= size and buf[i] == 0xFD:
+        if buf[i + 5] == AP_SYS and buf[i + 6] == AP_COMP and buf[i + 7] != mavlink.MAVLINK_MSG_ID_COMMAND_ACK:
+            n += 1
+        i += 12 + buf[i + 1] + (13 if buf[i + 2] & 1 else 0)
+    return n
+
+
 def pct(values: list[float], q: float) -> float:
     """Nearest-rank percentile (q in 0..100)."""
     ordered = sorted(values)
@@ -357,6 +368,22 @@ def bridge_env(root: Path) -> dict[str, str]:
     return env
 
 
+class PlainRouter(Bridge):
+    """Reference: the least a pymavlink program can do with the same traffic - decode every frame
+    (recv_msg) and forward it to the other side - and nothing else (no control, no estimator)."""
+
+    def __init__(self, workdir: str, name: str = "pymavlink router") -> None:
+        self.name = name
+        self.ap_port, self.gcs_port = free_udp_port(), free_udp_port()
+        self.ap_addr, self.gcs_addr = (LOCAL, self.ap_port), (LOCAL, self.gcs_port)
+        self.stats_path = os.path.join(workdir, "router-stats.json")
+        self.log_path = os.path.join(workdir, "router.log")
+        self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen([*os.environ.get("BENCH_PREFIX", "").split(),
+                                      *self_cmd("_router", str(self.ap_port), str(self.gcs_port))],
+                                     stdout=self._log, stderr=subprocess.STDOUT, cwd=REPO)
+
+
 def bridges(args: argparse.Namespace, profile_path: str, workdir: str) -> list[Bridge]:
     """The bridge of this tree, and with --base DIR the one of another tree (e.g. a `git archive` of
     the previous commit) measured alongside it in the same run."""
@@ -413,6 +440,22 @@ def echo_main(port: int) -> None:
         select.select([conn.fd], [], [], 1.0)
         while (m := conn.recv_msg()) is not None:
             conn.write(m.get_msgbuf())
+
+
+def router_main(ap_port: int, gcs_port: int) -> None:
+    """PlainRouter's process: two pymavlink udpin links, every frame decoded and sent to the other."""
+    from rover_bridge.mav import mavutil
+    ap: Any = mavutil.mavlink_connection(f"udpin:{LOCAL}:{ap_port}", dialect="ardupilotmega")
+    gcs: Any = mavutil.mavlink_connection(f"udpin:{LOCAL}:{gcs_port}", dialect="ardupilotmega")
+    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
+    peers = {ap.fd: (ap, gcs), gcs.fd: (gcs, ap)}
+    while True:
+        readable, _, _ = select.select(list(peers), [], [], 1.0)
+        for fd in readable:
+            src, dst = peers[fd]
+            while (m := src.recv_msg()) is not None:
+                if m.get_type() != "BAD_DATA":
+                    dst.write(m.get_msgbuf())
 
 
 def flood_main(port: int, rate_hz: float, seconds: float) -> None:
@@ -545,8 +588,7 @@ def offer(bridge: Bridge, ap: socket.socket, gcs: socket.socket, frames: list[by
             except BlockingIOError:
                 return got
             # Forwarded flood frames only (not the harness's COMMAND_ACKs to the bridge's stream requests).
-            if k > 9 and buf[5] == AP_SYS and buf[6] == AP_COMP and buf[7] != mavlink.MAVLINK_MSG_ID_COMMAND_ACK:
-                got += 1
+            got += forwarded_frames(buf, k)
     cpu0 = bridge.cpu_s()
     start = time.monotonic()
     if rate_hz is None:
@@ -681,7 +723,7 @@ def nominal_schedule(seconds: float, t0_s: float) -> Iterator[tuple[float, str]]
 def bench_cpu(args: argparse.Namespace) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         profile = write_profile({"command.rate_hz": "50.0"}, tmp)
-        under_test = bridges(args, profile, tmp)
+        under_test = [*bridges(args, profile, tmp), PlainRouter(tmp)]
         socks = [(udp_socket(), udp_socket()) for _ in under_test]
         tel = Telemetry()
         gcs_packer = Packer(GCS_SYS, GCS_COMP)
@@ -733,11 +775,12 @@ def bench_cpu(args: argparse.Namespace) -> None:
         rows.append([br.name, f"{t1 - t0:.1f}", f"{u1 - u0:.2f}", f"{s1 - s0:.2f}", f"{cpu_pct:.2f}",
                      "met" if cpu_pct < 3 else "MISSED",
                      est.get("odometry_sent"), cmd.get("outputs.sent"), cmd.get("requests.accepted"),
-                     st.get("runner", {}).get("forwarded"), st.get("runner", {}).get("ticks")])
+                     st.get("runner", {}).get("forwarded"), st.get("runner", {}).get("ticks"),
+                     st.get("runner", {}).get("passes", "-")])
     print_table("3. CPU at nominal load: WHEEL_DISTANCE, ATTITUDE, RAW_IMU 50 Hz; requests 50 Hz, command.rate_hz 50; "
                 "ODOMETRY 30 Hz; other telemetry ~40 Hz; GCS 6 Hz. Target < 3% of one core",
                 ["bridge", "wall_s", "user_s", "sys_s", "cpu_%_core", "target", "odometry", "outputs", "accepted",
-                 "forwarded", "ticks"],
+                 "forwarded", "ticks", "passes"],
                 rows)
 
 
@@ -934,8 +977,7 @@ def bench_memory_subprocess(args: argparse.Namespace) -> None:
                         k = gcs.recv_into(buf)
                     except BlockingIOError:
                         break
-                    if k > 9 and buf[5] == AP_SYS and buf[6] == AP_COMP and buf[7] != MSG_COMMAND_ACK:
-                        got += 1
+                    got += forwarded_frames(buf, k)
                 received += got
                 drain(ap)
                 now = time.monotonic()
@@ -1139,6 +1181,9 @@ def main(argv: list[str] | None = None) -> None:
         sp.add_argument("--base", metavar="DIR", help="also measure the bridge of another source tree, side by side")
     p = sub.add_parser("_echo")
     p.add_argument("port", type=int)
+    p = sub.add_parser("_router")
+    p.add_argument("ap_port", type=int)
+    p.add_argument("gcs_port", type=int)
     p = sub.add_parser("_flood")
     p.add_argument("port", type=int)
     p.add_argument("rate", type=float)
@@ -1146,6 +1191,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.cmd == "_echo":
         echo_main(args.port)
+    elif args.cmd == "_router":
+        router_main(args.ap_port, args.gcs_port)
     elif args.cmd == "_flood":
         flood_main(args.port, args.rate, args.seconds)
     elif args.cmd == "all":
