@@ -9,6 +9,8 @@ the same thing); the shell decodes only the message ids a core reads and checks 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from rover_bridge.mav import mavlink
 
 V1, V2 = mavlink.PROTOCOL_MARKER_V1, mavlink.PROTOCOL_MARKER_V2
@@ -16,6 +18,8 @@ SIGNED = mavlink.MAVLINK_IFLAG_SIGNED
 SIGNATURE_LEN = mavlink.MAVLINK_SIGNATURE_BLOCK_LEN
 HEADER_V1, HEADER_V2 = 6, 10
 _CRC_EXTRA = {msg_id: cls.crc_extra for msg_id, cls in mavlink.mavlink_map.items()}
+_EXTRA_BYTE = [bytes((i,)) for i in range(256)]
+_mcrf4xx: Callable[[bytes, int], int] | None = getattr(mavlink, "mcrf4xx", None)
 
 
 def msg_id(frame: bytes) -> int:
@@ -33,9 +37,13 @@ def crc_ok(frame: bytes) -> bool:
         return True
     sig = SIGNATURE_LEN if frame[0] == V2 and frame[2] & SIGNED else 0
     end = len(frame) - 2 - sig
-    crc = mavlink.x25crc(frame[1:end])
-    crc.accumulate(bytes((extra,)))
-    value: int = crc.crc
+    value: int
+    if _mcrf4xx is not None:  # fastcrc, as pymavlink uses it: the same CRC without its wrapper object
+        value = _mcrf4xx(_EXTRA_BYTE[extra], _mcrf4xx(frame[1:end], 0xFFFF))
+    else:
+        crc = mavlink.x25crc(frame[1:end])
+        crc.accumulate(_EXTRA_BYTE[extra])
+        value = crc.crc
     return value == frame[end] | frame[end + 1] << 8
 
 
@@ -83,8 +91,12 @@ class Framer:
         return self._take(length, good=not (magic == V2 and buf[2] & ~SIGNED))
 
     def _take(self, n: int, good: bool) -> tuple[bool, bytes]:
-        chunk = bytes(self._buf[:n])
-        del self._buf[:n]
+        if n == len(self._buf):  # the usual datagram: exactly one frame
+            chunk = bytes(self._buf)
+            self._buf.clear()
+        else:
+            chunk = bytes(self._buf[:n])
+            del self._buf[:n]
         if good:
             self.bytes_in_frames += n
         else:

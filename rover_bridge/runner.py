@@ -76,6 +76,9 @@ class Runner:
         self._stopped = False
         for ep in self.endpoints:
             ep.decode_only(core.reads(ep.role))
+        # Autopilot frames go to every GCS; a GCS's frames to the autopilot and the other GCSs.
+        self._forward_to = {ep: [o for o in (self.gcs if ep.role is Link.AUTOPILOT else self.endpoints) if o is not ep]
+                            for ep in self.endpoints}
 
     @property
     def endpoints(self) -> list[Endpoint]:
@@ -108,10 +111,9 @@ class Runner:
             frame = msg.frame
             if self.tlog is not None:
                 self.tlog.write(frame)
-            for other in (self.gcs if ep.role is Link.AUTOPILOT else [self.autopilot, *self.gcs]):
-                if other is not ep:
-                    other.queue_frame(frame)
-                    self.forwarded += 1
+            for other in self._forward_to[ep]:
+                other.queue_frame(frame)
+            self.forwarded += len(self._forward_to[ep])
             return
         assert not isinstance(msg, RawFrame)  # for mypy: type() narrows nothing
         frame = bytes(msg.get_msgbuf())  # one copy, shared by the log and every forward
@@ -121,11 +123,9 @@ class Runner:
         if reaction.consumed:
             self.consumed += 1
         else:
-            targets = self.gcs if ep.role is Link.AUTOPILOT else [self.autopilot, *self.gcs]
-            for other in targets:
-                if other is not ep:
-                    other.queue_frame(frame)
-                    self.forwarded += 1
+            for other in self._forward_to[ep]:
+                other.queue_frame(frame)
+            self.forwarded += len(self._forward_to[ep])
         if reaction.out:
             self.send_all(reaction.out)
 

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import itertools
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rover_bridge import framing
 from rover_bridge.framing import Framer, crc_ok, msg_id
 from rover_bridge.mav import MAVLinkMessage, mavlink
 
@@ -121,3 +123,12 @@ def test_a_flipped_payload_bit_fails_the_crc() -> None:
         bad = bytearray(frame)
         bad[len(bad) // 2] ^= 0x10
         assert not crc_ok(bytes(bad))
+
+
+def test_the_pure_python_checksum_agrees_with_fastcrc(monkeypatch: pytest.MonkeyPatch) -> None:
+    """fastcrc is a dependency, but a platform without its wheel falls back to pymavlink's own."""
+    frames = SAMPLES[:-1] + [f[:10] + bytes([f[10] ^ 1]) + f[11:] for f in SAMPLES[:-1]]  # a payload bit
+    fast = [crc_ok(f) for f in frames]
+    monkeypatch.setattr(framing, "_mcrf4xx", None)
+    assert [crc_ok(f) for f in frames] == fast
+    assert fast.count(True) == len(SAMPLES) - 1  # the originals pass, every altered copy fails
