@@ -1069,9 +1069,14 @@ def _load_tree_modules(root: Path) -> tuple[Any, Any]:
         spec = importlib.util.spec_from_file_location(f"_base_{name}", root / "rover_bridge" / f"{name}.py")
         assert spec is not None and spec.loader is not None
         mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod  # dataclasses look their module up there
         spec.loader.exec_module(mod)
         mods.append(mod)
-    return mods[0], mods[1]
+    links_mod, runner_mod = mods
+    for shared in ("Endpoint", "RawFrame"):  # the other tree's runner must see its own links' types
+        if hasattr(runner_mod, shared) and hasattr(links_mod, shared):
+            setattr(runner_mod, shared, getattr(links_mod, shared))
+    return links_mod, runner_mod
 
 
 def bench_hotpath(args: argparse.Namespace) -> None:
