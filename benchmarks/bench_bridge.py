@@ -665,7 +665,7 @@ def bench_throughput(args: argparse.Namespace) -> None:
         return frames
 
     with tempfile.TemporaryDirectory() as tmp:
-        under_test = bridges(args, str(DEFAULT_PROFILE), tmp)
+        under_test = [*bridges(args, str(DEFAULT_PROFILE), tmp), PlainRouter(tmp)]
         socks = [(udp_socket(), udp_socket()) for _ in under_test]
         try:
             for br, (ap, gcs) in zip(under_test, socks, strict=True):
@@ -698,7 +698,8 @@ def bench_throughput(args: argparse.Namespace) -> None:
               f"({', '.join(f'{r:,.0f}' for r in rates)}) = {share:.0%} of raw parse "
               f"(target >= 40% [{'met' if share >= 0.4 else 'MISSED'}])")
     for br, st in zip(under_test, stats, strict=True):
-        print(f"{br.name} link counters:", json.dumps(st.get("links", {})))
+        if st.get("links"):
+            print(f"{br.name} link counters:", json.dumps(st["links"]))
 
 
 # ------------------------------------------------------------------------------------- 3. cpu
