@@ -1,5 +1,6 @@
 """End-to-end harness: the real bridge shell and core, the sitl emulator and a scripted GCS,
-talking real MAVLink 2 over UDP loopback, all stepped on one simulated clock.
+talking real MAVLink 2 over UDP loopback (the autopilot optionally over TCP), all stepped on one
+simulated clock.
 
 Loopback UDP delivers a datagram before sendto() returns, so stepping the emulator, then the
 bridge, then the GCS, each draining its socket, is deterministic for a given seed.
@@ -41,18 +42,21 @@ class GcsView:
 class Lockstep:
     def __init__(self, profile: Profile, vehicle: VehicleConfig | None = None, *, seed: int = 0,
                  faults: FaultConfig | None = None, scenario: Any = None, start_armed: bool = True,
-                 dt_s: float = 0.01, tlog_path: str | None = None) -> None:
+                 dt_s: float = 0.01, tlog_path: str | None = None, autopilot_tcp: bool = False) -> None:
         self.dt_s = dt_s
         self.t_s = 0.0
         ap_port, gcs_port = free_udp_port(), free_udp_port()
         self.emu = Emulator(vehicle=vehicle or VehicleConfig(), scenario=scenario,
                             faults=faults or FaultConfig(), seed=seed, system_id=1)
-        self.emu.open(f"udpin:127.0.0.1:{ap_port}")
+        # The autopilot over UDP, or over TCP as ArduPilot SITL serves it (a stream: frames split
+        # across reads, several per read).
+        self.emu.open("tcpin:127.0.0.1:0" if autopilot_tcp else f"udpin:127.0.0.1:{ap_port}")
+        ap_url = f"tcp:127.0.0.1:{self.emu.local_address[1]}" if autopilot_tcp else f"udpout:127.0.0.1:{ap_port}"
         if start_armed:
             self.emu.set_armed(True)
         self.core = Core(profile)
         ids = {"source_system": self.core.identity.own_system_id, "source_component": self.core.identity.component_id}
-        self.autopilot = Endpoint(f"udpout:127.0.0.1:{ap_port}", Link.AUTOPILOT, **ids)
+        self.autopilot = Endpoint(ap_url, Link.AUTOPILOT, **ids)
         self.gcs_endpoint = Endpoint(f"udpin:127.0.0.1:{gcs_port}", Link.GCS, **ids)
         # The .tlog is stamped on the simulated clock, so a replay sees exactly the live timing.
         tlog = TlogWriter(open(tlog_path, "wb"), wall_clock=lambda: self.t_s) if tlog_path else None  # noqa: SIM115

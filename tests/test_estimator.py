@@ -186,10 +186,14 @@ def test_set_pose_keeps_velocity_and_shrinks_pose_uncertainty() -> None:
 
 # ---------------------------------------------------------------- the hand-written update
 
-def _random_state(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _filter_at_random_state(rng: np.random.Generator, calibrate: bool) -> tuple[WheelGyroEKF, np.ndarray, np.ndarray]:
+    """A filter put at a random state and positive-definite covariance, and copies of both."""
     x = np.array([0.3, -0.2, 0.4, 0.6, 0.3, 0.01, 1.02, 0.98]) + rng.normal(0.0, 0.05, N_CAL)
     A = rng.normal(0.0, 0.1, (N_CAL, N_CAL))
-    return x, A @ A.T + np.diag(rng.uniform(1e-4, 1e-2, N_CAL))
+    P = A @ A.T + np.diag(rng.uniform(1e-4, 1e-2, N_CAL))
+    ekf = WheelGyroEKF(L, calibrate=calibrate)
+    ekf.ekf.x, ekf.ekf.P = x.copy(), P.copy()
+    return ekf, x, P
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -198,9 +202,7 @@ def test_update_with_calibration_equals_filterpys_ekf_update(seed: int) -> None:
     from filterpy.kalman import ExtendedKalmanFilter
 
     rng = np.random.default_rng(seed)
-    x, P = _random_state(rng)
-    ekf = WheelGyroEKF(L, calibrate=True)
-    ekf.ekf.x, ekf.ekf.P = x.copy(), P.copy()
+    ekf, x, P = _filter_at_random_state(rng, calibrate=True)
     ref = ExtendedKalmanFilter(dim_x=N_CAL, dim_z=2)
     ref.x, ref.P = x.copy(), P.copy()
     H, hx = H_wheels(x, L), hx_wheels(x, L)
@@ -215,10 +217,7 @@ def test_update_with_calibration_equals_filterpys_ekf_update(seed: int) -> None:
 
 @pytest.mark.parametrize("seed", range(5))
 def test_consider_update_equals_the_joseph_form_with_zero_gain_rows(seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    x, P = _random_state(rng)
-    ekf = WheelGyroEKF(L, calibrate=False)
-    ekf.ekf.x, ekf.ekf.P = x.copy(), P.copy()
+    ekf, x, P = _filter_at_random_state(np.random.default_rng(seed), calibrate=False)
     H = H_gyro(x)
     R = np.array([[0.005**2]])
     y = np.array([0.03])
