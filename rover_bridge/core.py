@@ -41,16 +41,27 @@ class Core:
         self._subcores: tuple[SubCore, ...] = (self.command, self.estimate)
         self._next_heartbeat_s: float | None = None
         names = CommandCore.AUTOPILOT_READS | EstimateCore.AUTOPILOT_READS | BRIDGE_COMMANDS
-        self._autopilot_reads = frozenset(getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in names)
+        ids = frozenset(getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in names)
+        # Gyro messages only as the estimator wants them now (they change rarely: cached per set).
+        self._ap_always = ids - EstimateCore.ALL_GYRO_IDS | {mavlink.MAVLINK_MSG_ID_ATTITUDE}  # the command core's
+        self._ap_gyro = self.estimate.gyro_reads
+        self._autopilot_reads = self._ap_always | self._ap_gyro
 
     def reads(self, link: Link) -> frozenset[int] | None:
-        """Message ids the core reads from `link` (None: all). The shell decodes only these and
+        """Message ids the core reads from `link` now (None: all). The shell decodes only these and
         forwards the rest as raw bytes; handle() ignores the rest too, so both paths behave alike.
         Everything from a ground station is read: the security gate judges every frame."""
-        return self._autopilot_reads if link is Link.AUTOPILOT else None
+        return self._autopilot_ids() if link is Link.AUTOPILOT else None
+
+    def _autopilot_ids(self) -> frozenset[int]:
+        gyro = self.estimate.gyro_reads
+        if gyro is not self._ap_gyro:
+            self._ap_gyro = gyro
+            self._autopilot_reads = self._ap_always | gyro
+        return self._autopilot_reads
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
-        if inc.link is Link.AUTOPILOT and inc.msg.get_msgId() not in self._autopilot_reads:
+        if inc.link is Link.AUTOPILOT and inc.msg.get_msgId() not in self._autopilot_ids():
             return NOTHING
         refused = self.gate.check(inc, now_s)
         if refused is not None:

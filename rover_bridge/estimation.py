@@ -226,6 +226,8 @@ class EstimateCore:
         self._ap_clock = _StreamClock()
         self._gyro_source: str | None = None if est.gyro_source == "auto" else est.gyro_source
         self._gyro_last_seen: dict[str, float] = {}
+        self._gyro_reads = frozenset(GYRO_MESSAGES[name][0] for name in GYRO_PRIORITY)
+        self._update_gyro_reads(0.0)
         self._gyro_last_t: dict[str, float] = {}  # newest sender stamp (s) fused per gyro source
         # Gyro samples since the last wheel step (with the one before it), for the slip test.
         self._gyro_window: list[float] = []
@@ -295,9 +297,31 @@ class EstimateCore:
         )
 
     # ------------------------------------------------------------------ SubCore
-    # What handle() reads from the autopilot link (Core decodes nothing else from it).
+    # What handle() may read from the autopilot link (Core decodes nothing else from it); of the
+    # gyro messages only those `gyro_reads` names at the time.
     AUTOPILOT_READS = frozenset({"COMMAND_LONG", "HEARTBEAT", "WHEEL_DISTANCE", "ATTITUDE", "SCALED_IMU", "RAW_IMU",
                                  "SYSTEM_TIME", "COMMAND_ACK"})
+
+    ALL_GYRO_IDS = frozenset(msg_id for msg_id, _group in GYRO_MESSAGES.values())
+
+    @property
+    def gyro_reads(self) -> frozenset[int]:
+        """Message ids of the gyro sources worth decoding now: the one in use and those 'auto' would
+        switch to at once (higher priority); every source while none is in use or it fell silent.
+        A lower-priority IMU stream at 50 Hz is then forwarded without being decoded."""
+        return self._gyro_reads
+
+    def _update_gyro_reads(self, now_s: float) -> None:
+        current = self._gyro_source
+        if self.profile.estimator.gyro_source != "auto" and current is not None:
+            names: tuple[str, ...] = (current,)
+        elif current is None or now_s - self._gyro_last_seen.get(current, -math.inf) > GYRO_SILENT_S:
+            names = GYRO_PRIORITY
+        else:
+            names = GYRO_PRIORITY[: GYRO_PRIORITY.index(current) + 1]
+        reads = frozenset(GYRO_MESSAGES[name][0] for name in names)
+        if reads != self._gyro_reads:
+            self._gyro_reads = reads
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
         msg = inc.msg
@@ -327,6 +351,7 @@ class EstimateCore:
         return Reaction(out=tuple(out)) if out else NOTHING
 
     def tick(self, now_s: float) -> list[Outgoing]:
+        self._update_gyro_reads(now_s)  # a source that fell silent: read the others again
         out = self._pump_streams(now_s)
         out += self._check_rates(now_s)
         due = self._next_odom_s is None or now_s >= self._next_odom_s
@@ -496,6 +521,7 @@ class EstimateCore:
                 self._counters["gyro_switches"] += 1
                 log.info("gyro source %s -> %s", current, source)
             self._gyro_source = source
+            self._update_gyro_reads(now_s)
             return True
         return False
 

@@ -90,6 +90,7 @@ class Runner:
         have more frames waiting; `next_deadline_s` is the core's next deadline after this pass."""
         self.backlog = False
         for ep in self.endpoints if ready is None else ready:
+            ep.decode_only(self.core.reads(ep.role))  # what the core reads may change (its gyro source)
             msgs = ep.read() if max_frames is None else ep.read(max_frames)
             if msgs and ep is self.autopilot:
                 self._ap_read_s = now_s  # a silent link is not batched: it stays watched

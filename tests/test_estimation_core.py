@@ -424,3 +424,42 @@ def test_arrival_jitter_does_not_change_the_estimate() -> None:
     assert samples[-1][2].dist_m > 20.0  # it went somewhere, turning both ways
     assert b.x_m == pytest.approx(a.x_m, abs=1e-9) and b.y_m == pytest.approx(a.y_m, abs=1e-9)
     assert b.yaw_rad == pytest.approx(a.yaw_rad, abs=1e-12)
+
+
+def test_only_the_gyro_sources_in_use_are_decoded_and_a_silent_one_opens_the_others() -> None:
+    """Core.reads (what the shell decodes from the autopilot) follows the gyro source: a lower-priority
+    IMU stream is forwarded undecoded while ATTITUDE is used, and read again once ATTITUDE falls silent."""
+    from rover_bridge.core import Core
+    from rover_bridge.estimation import GYRO_SILENT_S
+
+    imu = {mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_SCALED_IMU}
+    core = Core(profile_from_dict({}))
+    ap_reads = core.reads(Link.AUTOPILOT)
+    assert ap_reads is not None and imu <= ap_reads  # no source yet: every one is read
+    assert core.reads(Link.GCS) is None  # a ground station's frames are all judged by the gate
+    core.handle(Incoming(Link.AUTOPILOT, _hb()), 0.0)
+    core.handle(Incoming(Link.AUTOPILOT, _attitude(0.02, 0.0)), 0.02)
+    ap_reads = core.reads(Link.AUTOPILOT)
+    assert ap_reads is not None and not imu & ap_reads and mavlink.MAVLINK_MSG_ID_ATTITUDE in ap_reads
+    raw = _from(mavlink.MAVLink_raw_imu_message(time_usec=30_000, xacc=0, yacc=0, zacc=0, xgyro=0, ygyro=0, zgyro=0,
+                                                xmag=0, ymag=0, zmag=0))
+    core.handle(Incoming(Link.AUTOPILOT, raw), 0.03)
+    assert core.estimate.gyro_source == "attitude"
+    later = 0.02 + GYRO_SILENT_S + 0.1
+    core.tick(later)
+    ap_reads = core.reads(Link.AUTOPILOT)
+    assert ap_reads is not None and imu <= ap_reads
+    raw = _from(mavlink.MAVLink_raw_imu_message(time_usec=round(later * 1e6), xacc=0, yacc=0, zacc=0, xgyro=0, ygyro=0,
+                                                zgyro=0, xmag=0, ymag=0, zmag=0))
+    core.handle(Incoming(Link.AUTOPILOT, raw), later)
+    assert core.estimate.gyro_source == "raw_imu" and core.estimate.counters["gyro_switches"] == 1
+
+
+def test_a_fixed_gyro_source_is_the_only_imu_decoded() -> None:
+    from rover_bridge.core import Core
+
+    core = Core(profile_from_dict({"estimator": {"gyro_source": "raw_imu"}}))
+    ap_reads = core.reads(Link.AUTOPILOT)
+    assert ap_reads is not None
+    assert mavlink.MAVLINK_MSG_ID_RAW_IMU in ap_reads and mavlink.MAVLINK_MSG_ID_SCALED_IMU not in ap_reads
+    assert mavlink.MAVLINK_MSG_ID_ATTITUDE in ap_reads  # the command core's heading
