@@ -385,7 +385,7 @@ class WheelGyroEKF:
         self.rejects_in_row[sensor] += 1
         return False
 
-    def _update(self, y: Vec, H: Mat, S: Mat, R: Mat) -> None:
+    def _update(self, y: Vec, H: Mat, S: Mat) -> None:
         """EKF update with innovation y = z - h(x) and its covariance S = H P H' + R.
 
         Without calibration the geometry states are *consider* states (Schmidt-Kalman): their gain
@@ -431,7 +431,7 @@ class WheelGyroEKF:
         y, S, d2 = self._gyro_innovation(omega_rad_s)
         if not self._gate("gyro", d2):
             return False
-        self._update(np.array([y]), _H_GYRO[self.n], np.array([[S]]), self._gyro_R)
+        self._update(np.array([y]), _H_GYRO[self.n], np.array([[S]]))
         # Trapezoid: the prediction turned at piecewise-constant rates, while the body's rate moved
         # from the last gyro sample's to this one's. Without this every change of yaw rate leaves a
         # heading error of (change x half a sample period), 1.3 deg per spin at 20 Hz.
@@ -516,7 +516,7 @@ class WheelGyroEKF:
         gate_d2 = y0 * y0 / s00 if slip else d2 / 2.0
         if not self._gate("wheels", gate_d2):
             return WheelUpdate(False, slip, stationary, slip_d2, d2)
-        self._update(y, H, S, R)
+        self._update(y, H, S)
         # Trapezoid for the distance, as update_gyro does for the heading: the speed moved from the
         # last update's to this one's while the prediction used piecewise-constant speeds.
         v_now = float(self.ekf.x[IV])

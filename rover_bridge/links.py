@@ -161,13 +161,9 @@ class Endpoint:
         self.rx_bad += 1
         log.debug("%s: undecodable input dropped: %s", self.url, exc)
 
-    def write_frame(self, frame: bytes) -> None:
-        """Forward a frame byte for byte (source ids, sequence and signature untouched)."""
-        self.conn.write(frame)
-        self.tx_frames += 1
-
     def queue_frame(self, frame: bytes) -> None:
-        """Forward a frame byte for byte with the next flush() (the runner flushes after every pass)."""
+        """Forward a frame byte for byte (source ids, sequence and signature untouched) with the next
+        flush() (the runner flushes after every pass)."""
         self._pending.append(frame)
 
     def flush(self) -> None:

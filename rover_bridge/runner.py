@@ -74,8 +74,6 @@ class Runner:
         self._ap_batch_s = core.profile.mavlink.autopilot_batch_ms * 1e-3
         self._ap_read_s = -1e9
         self._stopped = False
-        for ep in self.endpoints:
-            ep.decode_only(core.reads(ep.role))
         # Autopilot frames go to every GCS; a GCS's frames to the autopilot and the other GCSs.
         self._forward_to = {ep: [o for o in (self.gcs if ep.role is Link.AUTOPILOT else self.endpoints) if o is not ep]
                             for ep in self.endpoints}

@@ -208,7 +208,7 @@ def test_update_with_calibration_equals_filterpys_ekf_update(seed: int) -> None:
     H, hx = H_wheels(x, L), hx_wheels(x, L)
     z = hx + rng.normal(0.0, 0.05, 2)
     R = wheel_noise(0.02, 0.025, 0.05, L, NoiseModel())
-    ekf._update(z - hx, H, H @ P @ H.T + R, R)
+    ekf._update(z - hx, H, H @ P @ H.T + R)
     ref.update(z, lambda _x: H, lambda _x: hx, R=R)
     ref.x[IYAW] = math.remainder(float(ref.x[IYAW]), 2.0 * math.pi)
     np.testing.assert_allclose(ekf.x, ref.x, rtol=1e-9, atol=1e-12)
@@ -222,7 +222,7 @@ def test_consider_update_equals_the_joseph_form_with_zero_gain_rows(seed: int) -
     R = np.array([[0.005**2]])
     y = np.array([0.03])
     S = H @ P @ H.T + R
-    ekf._update(y, H, S, R)
+    ekf._update(y, H, S)
     K = P @ H.T @ np.linalg.inv(S)
     K[[IKT, IKR], :] = 0.0
     I_KH = np.eye(N_CAL) - K @ H
