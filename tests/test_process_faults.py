@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from lockstep import GCS_COMPID, GCS_SYSID, free_udp_port
+from lockstep import GCS_COMPID, GCS_SYSID
 
 from rover_bridge import cli
 from rover_bridge.commands import run as run_command
@@ -71,9 +71,14 @@ def assert_neutral_then_released(spy: OverrideSpy, emu: Emulator) -> None:
 
 
 class Gcs:
-    def __init__(self, port: int) -> None:
-        self.conn: Any = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=GCS_SYSID,
+    """Listens on a port of its own choosing (`port`); the bridge sends to it (`--gcs udpout:`) and it
+    answers the address the bridge's first frame came from. Ports are bound at 0, never picked and
+    then bound: with trials in parallel, a port found free can be taken before it is bound."""
+
+    def __init__(self) -> None:
+        self.conn: Any = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=GCS_SYSID,
                                                     source_component=GCS_COMPID, dialect="ardupilotmega")
+        self.port: int = self.conn.port.getsockname()[1]
         self.seen: set[str] = set()
 
     def heartbeat(self) -> None:
@@ -129,16 +134,16 @@ class WallClockEmulator:
 def one_signal_trial(trial: int, signum: int) -> str:
     """Returns '' on success, else a description of what went wrong (collected across threads)."""
     rng = random.Random(1000 + trial)
-    ap_port, gcs_port = free_udp_port(), free_udp_port()
     emu = Emulator(VehicleConfig(start_armed=True), seed=trial)
-    emu.open(f"udpin:127.0.0.1:{ap_port}")
+    emu.open("udpin:127.0.0.1:0")
+    ap_port = emu.local_address[1]
+    gcs = Gcs()
     spy = OverrideSpy(emu)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
         [sys.executable, "-m", "rover_bridge", "run", "--params", PARAMS, "--autopilot",
-         f"udpout:127.0.0.1:{ap_port}", "--gcs", f"udpin:127.0.0.1:{gcs_port}", "--duration", "60"],
+         f"udpout:127.0.0.1:{ap_port}", "--gcs", f"udpout:127.0.0.1:{gcs.port}", "--duration", "60"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
-    gcs = Gcs(gcs_port)
     clock = WallClockEmulator(emu, gcs)
     try:
         # Requests from the start: the first ones the bridge can act on set the rover moving (start-up
@@ -199,11 +204,11 @@ class ExplodingCore(Core):
 def test_an_exception_in_a_handler_ends_in_neutral_then_release_and_exit_status_1(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     monkeypatch.setattr(run_command, "Core", ExplodingCore)
-    ap_port, gcs_port = free_udp_port(), free_udp_port()
     emu = Emulator(VehicleConfig(start_armed=True), seed=99)
-    emu.open(f"udpin:127.0.0.1:{ap_port}")
+    emu.open("udpin:127.0.0.1:0")
+    ap_port = emu.local_address[1]
     spy = OverrideSpy(emu)
-    gcs = Gcs(gcs_port)
+    gcs = Gcs()
     clock = WallClockEmulator(emu, gcs)
     clock.requests = True
     stop = threading.Event()
@@ -219,7 +224,7 @@ def test_an_exception_in_a_handler_ends_in_neutral_then_release_and_exit_status_
     worker.start()
     try:
         code = cli.main(["run", "--params", PARAMS, "--autopilot", f"udpout:127.0.0.1:{ap_port}",
-                         "--gcs", f"udpin:127.0.0.1:{gcs_port}", "--duration", "30"])
+                         "--gcs", f"udpout:127.0.0.1:{gcs.port}", "--duration", "30"])
         time.sleep(0.3)  # the last datagrams reach the emulator
     finally:
         stop.set()
