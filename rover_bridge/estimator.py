@@ -275,7 +275,6 @@ class WheelGyroEKF:
         self._turned_since_gyro_rad = 0.0
         self._wheels_prev: tuple[float, float] | None = None  # (time, v after that update)
         self._moved_since_wheels_m = 0.0
-        self._gyro_R = np.array([[self.noise.gyro_noise_rad_s ** 2]])
         self._gyro_var = self.noise.gyro_noise_rad_s ** 2
         self._F = np.eye(n)  # reused by every prediction step (F_jacobian writes the same entries)
         self._estimated = np.ones(n)  # 1 for estimated states, 0 for considered ones: masks the gain
@@ -459,7 +458,7 @@ class WheelGyroEKF:
         Hg = H_wheels(xg, self.track_width_m)[1]
         # The spread of the gyro samples over the interval covers an omega that changed within it.
         var = float(R[1, 1]) + float(Hg[IW]) ** 2 * (
-            float(self._gyro_R[0, 0]) + float(P[IB, IB]) + gyro_spread_rad_s**2)
+            self._gyro_var + float(P[IB, IB]) + gyro_spread_rad_s**2)
         if self.n == N_CAL:
             g = Hg[IKT:]
             var += float(g @ P[IKT:, IKT:] @ g)
