@@ -26,12 +26,12 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any
 
-from rover_bridge.estimation import EstimateCore
-from rover_bridge.identity import Identity
+from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import Incoming, Link
 from rover_bridge.odometry import Pose2D
 from rover_bridge.params import Profile, profile_from_dict
-from rover_bridge.report import Reporter
-from rover_bridge.wire import Incoming, Link
 from sitl import Emulator, Scenario, VehicleConfig
 from sitl.scenario import SlipWindow
 

@@ -2,12 +2,12 @@
 
 Subcommands (each prints a table and finishes in under 2 minutes; `all` runs them in turn):
 
-  hotpath      CPU per message of Runner.step in-process, beside raw parse_buffer and Core.handle alone
+  hotpath      CPU per message of Runner.step in-process, beside raw parse_buffer and BridgeCore.handle alone
   latency      GCS request datagram in -> RC_CHANNELS_OVERRIDE datagram out, next to a pymavlink UDP echo
   throughput   autopilot telemetry flood routed to a GCS: highest zero-loss rate, next to raw parse_buffer
   cpu          CPU % of one core at nominal load (50 Hz wheels / IMU / control, 30 Hz ODOMETRY)
   regularity   override period jitter at command.rate_hz = 50, quiet and under a 5000 msg/s GCS flood
-  memory       RSS over one million messages (in-process Runner + Core; --subprocess: the real process)
+  memory       RSS over one million messages (in-process Runner + BridgeCore; --subprocess: the real process)
   startup      process start -> first HEARTBEAT sent; import-time breakdown
 
 Run: python benchmarks/bench_bridge.py all [--base DIR]   (or one subcommand; --help for options)
@@ -47,7 +47,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from rover_bridge.mav import mavlink
+from rover_bridge.mavlink.dialect import mavlink
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_PROFILE = REPO / "params" / "default.toml"
@@ -266,7 +266,7 @@ def flood_frames(count: int, rate_hz: float, t0_s: float = 100.0) -> list[bytes]
 
 _CPROFILE_MAIN = """
 import cProfile, sys, time
-from rover_bridge.cli import main
+from rover_bridge.app.cli import main
 pr = cProfile.Profile(time.process_time)
 pr.enable()
 try:
@@ -433,7 +433,7 @@ def self_cmd(*args: str) -> list[str]:
 
 def echo_main(port: int) -> None:
     """A plain pymavlink UDP echo: parse every datagram with pymavlink and send the frame back."""
-    from rover_bridge.mav import mavutil
+    from rover_bridge.mavlink.dialect import mavutil
     conn: Any = mavutil.mavlink_connection(f"udpin:{LOCAL}:{port}", dialect="ardupilotmega")
     print("ready", flush=True)
     while True:
@@ -444,7 +444,7 @@ def echo_main(port: int) -> None:
 
 def router_main(ap_port: int, gcs_port: int) -> None:
     """PlainRouter's process: two pymavlink udpin links, every frame decoded and sent to the other."""
-    from rover_bridge.mav import mavutil
+    from rover_bridge.mavlink.dialect import mavutil
     ap: Any = mavutil.mavlink_connection(f"udpin:{LOCAL}:{ap_port}", dialect="ardupilotmega")
     gcs: Any = mavutil.mavlink_connection(f"udpin:{LOCAL}:{gcs_port}", dialect="ardupilotmega")
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
@@ -871,18 +871,18 @@ def bench_memory_inprocess(args: argparse.Namespace) -> None:
     read / handle / forward path as the process, minus select()): batches of datagrams are queued
     on the bridge's sockets, then one Runner.step takes them. Fast enough for a million messages
     in under two minutes; the harness allocates everything it sends before the first RSS reading."""
-    from rover_bridge.core import Core
-    from rover_bridge.links import Endpoint
+    from rover_bridge.app.composition import BridgeCore
+    from rover_bridge.app.runner import Runner
+    from rover_bridge.mavlink.links import Endpoint
+    from rover_bridge.mavlink.wire import Link
     from rover_bridge.params import load_profile
-    from rover_bridge.runner import Runner
-    from rover_bridge.wire import Link
 
     total = args.warmup + args.messages
     batch = 500
     ap_port, gcs_port = free_udp_port(), free_udp_port()
     ap_ep = Endpoint(f"udpin:{LOCAL}:{ap_port}", Link.AUTOPILOT)
     gcs_ep = Endpoint(f"udpin:{LOCAL}:{gcs_port}", Link.GCS)
-    runner = Runner(Core(load_profile(str(DEFAULT_PROFILE))), ap_ep, [gcs_ep])
+    runner = Runner(BridgeCore(load_profile(str(DEFAULT_PROFILE))), ap_ep, [gcs_ep])
     ap, gcs = udp_socket(), udp_socket()
     tel = Telemetry()
     gcs_packer = Packer(GCS_SYS, GCS_COMP)
@@ -923,7 +923,7 @@ def bench_memory_inprocess(args: argparse.Namespace) -> None:
     rx = ap_ep.rx_frames + gcs_ep.rx_frames
     base_kb = rss[0][2]
     rows = [[n, f"{t:.1f}", kb / 1024.0, (kb - base_kb) / 1024.0] for n, t, kb in rss]
-    print_table(f"5. memory: VmRSS of the Runner + Core (in-process, real UDP endpoints), 90% forwarded-only "
+    print_table(f"5. memory: VmRSS of the Runner + BridgeCore (in-process, real UDP endpoints), 90% forwarded-only "
                 f"telemetry, 8% WHEEL_DISTANCE/ATTITUDE/SYSTEM_TIME, 2% requests; first row after {args.warmup:,} "
                 "warm-up messages",
                 ["messages_sent", "elapsed_s", "rss_mb", "growth_mb"], rows)
@@ -1036,7 +1036,8 @@ def bench_startup(args: argparse.Namespace) -> None:
             times.append(got - t0)
     # Import cost of what `rover_bridge run` imports, from python -X importtime: self time summed by
     # top-level package (these add up to the total), and the cumulative time of a few notable subtrees.
-    imp = subprocess.run([sys.executable, "-X", "importtime", "-c", "import rover_bridge.cli as c; c.build_parser()"],
+    imp = subprocess.run([sys.executable, "-X", "importtime", "-c",
+                          "import rover_bridge.app.cli as c; c.build_parser()"],
                          capture_output=True, text=True, cwd=REPO)
     self_by_pkg: dict[str, int] = {}
     cumulative: dict[str, int] = {}
@@ -1055,7 +1056,7 @@ def bench_startup(args: argparse.Namespace) -> None:
                 f"{total_us / 1000.0:.0f} ms, one run)", ["package", "ms", "share"],
                 [[k, v / 1000.0, f"{v / total_us:.0%}"] for k, v in top])
     notable = ["filterpy", "filterpy.stats", "scipy.stats", "scipy.linalg", "matplotlib", "numpy", "pymavlink.mavutil",
-               "pymavlink.dialects.v20.ardupilotmega", "rover_bridge.estimator", "rover_bridge.commands.demo"]
+               "pymavlink.dialects.v20.ardupilotmega", "rover_bridge.estimate.ekf", "rover_bridge.app.commands.demo"]
     print_table("   cumulative import time of notable subtrees (ms; a subtree already imported elsewhere counts 0)",
                 ["module", "ms"], [[n, cumulative[n] / 1000.0] for n in notable if n in cumulative])
 
@@ -1066,8 +1067,10 @@ def _load_tree_modules(root: Path) -> tuple[Any, Any]:
     """links and runner modules of another source tree (the rest of the package is this tree's)."""
     import importlib.util
     mods = []
-    for name in ("links", "runner"):
-        spec = importlib.util.spec_from_file_location(f"_base_{name}", root / "rover_bridge" / f"{name}.py")
+    for name, subdirs in (("links", ("mavlink", "")), ("runner", ("app", ""))):
+        # This tree's layout (packages by flow) or an older flat one.
+        path = next(p for p in (root / "rover_bridge" / sub / f"{name}.py" for sub in subdirs) if p.exists())
+        spec = importlib.util.spec_from_file_location(f"_base_{name}", path)
         assert spec is not None and spec.loader is not None
         mod = importlib.util.module_from_spec(spec)
         sys.modules[spec.name] = mod  # dataclasses look their module up there
@@ -1082,13 +1085,13 @@ def _load_tree_modules(root: Path) -> tuple[Any, Any]:
 
 def bench_hotpath(args: argparse.Namespace) -> None:
     """CPU per message of one Runner.step over datagrams already queued on its UDP socket (no
-    scheduling, no wake-ups: the code path alone), beside pymavlink's parse_buffer and Core.handle
+    scheduling, no wake-ups: the code path alone), beside pymavlink's parse_buffer and BridgeCore.handle
     alone on the same frames; with --base, the shell (links.py + runner.py) of another tree too."""
-    from rover_bridge import links as this_links
-    from rover_bridge import runner as this_runner
-    from rover_bridge.core import Core
+    from rover_bridge.app import runner as this_runner
+    from rover_bridge.app.composition import BridgeCore
+    from rover_bridge.mavlink import links as this_links
+    from rover_bridge.mavlink.wire import Incoming, Link
     from rover_bridge.params import load_profile
-    from rover_bridge.wire import Incoming, Link
 
     profile = load_profile(str(DEFAULT_PROFILE))
     shells: dict[str, tuple[Any, Any]] = {"bridge": (this_links, this_runner)}
@@ -1101,14 +1104,14 @@ def bench_hotpath(args: argparse.Namespace) -> None:
         gcs_ep = links_mod.Endpoint(f"udpin:{LOCAL}:{gcs_port}", Link.GCS)
         for ep in (ap_ep, gcs_ep):  # the whole batch must fit, whatever either tree asks for
             ep.conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, BIG_RCVBUF)
-        runner = runner_mod.Runner(Core(profile), ap_ep, [gcs_ep])
+        runner = runner_mod.Runner(BridgeCore(profile), ap_ep, [gcs_ep])
         ap, gcs = udp_socket(), udp_socket()
         gcs.sendto(Packer(GCS_SYS, GCS_COMP).pack(heartbeat_gcs()), (LOCAL, gcs_port))  # the GCS is a peer
         rigs[name] = (runner, ap, gcs, (LOCAL, ap_port))
     batch = args.batch
     frames_all = flood_frames(batch * args.repeats, 3000.0)
     results: dict[str, list[float]] = {"parse": [], "core": [], **{name: [] for name in rigs}}
-    core_only = Core(profile)
+    core_only = BridgeCore(profile)
     clock = {name: 100.0 for name in rigs}
     for rep in range(args.repeats):
         frames = frames_all[rep * batch:(rep + 1) * batch]
@@ -1138,12 +1141,14 @@ def bench_hotpath(args: argparse.Namespace) -> None:
         gcs.close()
     parse_us = statistics.median(results["parse"])
     rows = [["pymavlink parse_buffer (raw parse)", statistics.median(results["parse"]), min(results["parse"]), "100%"],
-            ["Core.handle alone (decoded messages)", statistics.median(results["core"]), min(results["core"]), "-"]]
+            ["BridgeCore.handle alone (decoded messages)", statistics.median(results["core"]),
+             min(results["core"]), "-"]]
     for name in rigs:
         med = statistics.median(results[name])
         rows.append([f"{name}: Runner.step (read, handle, forward)", med, min(results[name]), f"{parse_us / med:.0%}"])
         shell = med - statistics.median(results["core"])
-        rows.append([f"{name}: the same minus Core.handle (parse + shell)", shell, "-", f"{parse_us / shell:.0%}"])
+        rows.append([f"{name}: the same minus BridgeCore.handle (parse + shell)", shell, "-",
+                     f"{parse_us / shell:.0%}"])
     print_table(f"hot path: CPU microseconds per message, {args.repeats} batches of {batch} queued datagrams of the "
                 f"throughput mix, in-process", ["what", "median_us", "min_us", "rate_vs_raw_parse"], rows)
 

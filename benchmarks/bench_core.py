@@ -10,16 +10,16 @@ import statistics
 import timeit
 from collections.abc import Callable, Iterator
 
-from rover_bridge.estimation import EstimateCore
-from rover_bridge.estimator import WheelGyroEKF
-from rover_bridge.identity import Identity
+from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.estimate.ekf import WheelGyroEKF
 from rover_bridge.kinematics import DiffDrive, Twist2D
 from rover_bridge.limits import TwistLimiter, TwistLimits
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import Incoming, Link
 from rover_bridge.odometry import WheelOdometry
 from rover_bridge.params import Profile
-from rover_bridge.report import Reporter
-from rover_bridge.wire import Incoming, Link
 
 REPEATS = 7
 # A gentle arc at 0.4 m/s, 0.2 rad/s: 20 ms of wheel distance per reading (track 0.30 m).

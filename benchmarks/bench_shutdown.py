@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rover_bridge.demo import free_udp_port
-from rover_bridge.mav import mavlink, mavutil
+from rover_bridge.app.demo import free_udp_port
+from rover_bridge.mavlink.dialect import mavlink, mavutil
 from sitl import Emulator, VehicleConfig
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,7 +1,8 @@
 """rover-bridge: a MAVLink 2 companion bridge for differential-drive rovers.
 
-Pure core (kinematics, limits, odometry, estimator, setpoints, outputs, bridge) with no
-sockets, no clocks and no threads; a thin shell (links, runner, cli) does the I/O.
+The public math (kinematics, limits, odometry, frames) and the profile (params, errors) live at the
+top level; command/ and estimate/ are the two flows' pure cores, mavlink/ the protocol edge, app/ the
+composition and the process around it. Dependencies point one way: math <- mavlink <- flows <- app.
 """
 
 __version__ = "0.1.0"

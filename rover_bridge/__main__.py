@@ -1,5 +1,5 @@
 """`python -m rover_bridge` is the same as the `rover-bridge` console script."""
 
-from rover_bridge.cli import console_main
+from rover_bridge.app.cli import console_main
 
 console_main()

@@ -12,13 +12,13 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from rover_bridge.core import Core
-from rover_bridge.demo import free_udp_port
-from rover_bridge.links import Endpoint
-from rover_bridge.mav import MAVLinkMessage, mavlink, mavutil
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.app.demo import free_udp_port
+from rover_bridge.app.runner import Runner, TlogWriter
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink, mavutil
+from rover_bridge.mavlink.links import Endpoint
+from rover_bridge.mavlink.wire import Link
 from rover_bridge.params import Profile
-from rover_bridge.runner import Runner, TlogWriter
-from rover_bridge.wire import Link
 from sitl import Emulator, FaultConfig, VehicleConfig
 
 GCS_SYSID = 255
@@ -54,7 +54,7 @@ class Lockstep:
         ap_url = f"tcp:127.0.0.1:{self.emu.local_address[1]}" if autopilot_tcp else f"udpout:127.0.0.1:{ap_port}"
         if start_armed:
             self.emu.set_armed(True)
-        self.core = Core(profile)
+        self.core = BridgeCore(profile)
         ids = {"source_system": self.core.identity.own_system_id, "source_component": self.core.identity.component_id}
         self.autopilot = Endpoint(ap_url, Link.AUTOPILOT, **ids)
         self.gcs_endpoint = Endpoint(f"udpin:127.0.0.1:{gcs_port}", Link.GCS, **ids)

@@ -12,7 +12,7 @@ import random
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 
 SIM_DT_S = 0.005
 ACCEL_M_S2 = 1.0

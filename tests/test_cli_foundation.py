@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from rover_bridge.cli import main
+from rover_bridge.app.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = str(REPO / "params" / "default.toml")

@@ -1,4 +1,4 @@
-"""The shell sleeps until `Core.next_deadline_s`; a deadline that `tick` leaves in the past makes it spin.
+"""The shell sleeps until `BridgeCore.next_deadline_s`; a deadline that `tick` leaves in the past makes it spin.
 
 Invariant: right after `tick(now)`, the next deadline is strictly later than `now`, whatever came in
 before (ACKs or none, silence, disarm, requests, a reboot). A queued stream request that waited for
@@ -12,10 +12,10 @@ import dataclasses
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rover_bridge.core import Core
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.wire import Incoming, Link
 from rover_bridge.params import Profile
-from rover_bridge.wire import Incoming, Link
 
 AP = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
 GCS = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
@@ -69,7 +69,7 @@ def test_tick_always_moves_the_deadline_into_the_future(events: list[tuple[str, 
         profile = dataclasses.replace(profile, output=dataclasses.replace(profile.output, mode="servo"))
     if calibrate:
         profile = dataclasses.replace(profile, estimator=dataclasses.replace(profile.estimator, calibrate=True))
-    core = Core(profile)
+    core = BridgeCore(profile)
     t_s = 10.0
     for kind, gap_s, value in events:
         target = t_s + gap_s

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from lockstep import GCS_COMPID, GCS_SYSID, Lockstep, circle_fit_radius, free_udp_port
 
-from rover_bridge.mav import mavlink, mavutil
+from rover_bridge.mavlink.dialect import mavlink, mavutil
 from rover_bridge.params import Profile
 from sitl import Emulator, VehicleConfig
 

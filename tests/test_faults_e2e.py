@@ -1,4 +1,4 @@
-"""Link faults end to end, in lockstep: the real Runner + Core, the sitl emulator, a scripted GCS.
+"""Link faults end to end, in lockstep: the real Runner + BridgeCore, the sitl emulator, a scripted GCS.
 
 The autopilot link uses the emulator's own fault injection (both directions); the GCS link gets the
 same seeded datagram faults (sitl.faults.FaultyLink) wrapped around the scripted ground station's
@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 from lockstep import Lockstep
 
-from rover_bridge.mav import MAVLinkMessage
+from rover_bridge.mavlink.dialect import MAVLinkMessage
 from rover_bridge.params import Profile
 from sitl import FaultConfig, LinkFaults, Scenario, VehicleConfig
 from sitl.faults import FaultyLink

@@ -1,4 +1,4 @@
-"""rover_bridge.framing against pymavlink's robust parser: the same frames and bad runs, any byte stream.
+"""rover_bridge.mavlink.framing against pymavlink's robust parser: the same frames and bad runs, any byte stream.
 
 The shell delimits frames itself and decodes only what a core reads, so its counters and its
 forwarding must agree with what pymavlink's parser would have made of the same bytes: every valid
@@ -13,9 +13,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rover_bridge import framing
-from rover_bridge.framing import Framer, crc_ok, msg_id
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.mavlink import framing
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.framing import Framer, crc_ok, msg_id
 
 KEY = bytes(range(32))
 

@@ -12,9 +12,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from rover_bridge.command.outputs import OutputMap, WheelPwm
 from rover_bridge.kinematics import WheelSpeeds
-from rover_bridge.mav import MAVLinkMessage, mavlink
-from rover_bridge.outputs import OutputMap, WheelPwm
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.params import Profile
 
 MAX = 20.0  # rad/s at full PWM, a round number for hand computation

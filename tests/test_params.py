@@ -10,14 +10,7 @@ from pathlib import Path
 import pytest
 
 from rover_bridge.errors import ConfigError
-from rover_bridge.params import (
-    Profile,
-    iter_params,
-    load_profile,
-    markdown_table,
-    profile_from_dict,
-    profile_to_toml,
-)
+from rover_bridge.params import Profile, iter_params, load_profile, markdown_table, profile_from_dict, profile_to_toml
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 SHIPPED = sorted(PARAMS_DIR.glob("*.toml"))

@@ -3,7 +3,7 @@
 - 20 trials (10 SIGTERM, 10 SIGINT, two at a time): the real `python -m rover_bridge run` process
   against an in-process emulator, a GCS driving the rover; the signal arrives at a seeded moment
   during motion; every trial must exit 0 with neutral, then release, received by the autopilot.
-- A Core whose handle raises on a chosen message, run through the CLI in-process: the loop's error
+- A BridgeCore whose handle raises on a chosen message, run through the CLI in-process: the loop's error
   path sends neutral, then release, and the exit status is 1.
 
 A spy on the emulator records every RC override it applies (channel, pwm), so the order of the
@@ -26,12 +26,12 @@ from typing import Any
 import pytest
 from lockstep import GCS_COMPID, GCS_SYSID
 
-from rover_bridge import cli
-from rover_bridge.commands import run as run_command
-from rover_bridge.core import Core
-from rover_bridge.mav import mavlink, mavutil
+from rover_bridge.app import cli
+from rover_bridge.app.commands import run as run_command
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.mavlink.dialect import mavlink, mavutil
+from rover_bridge.mavlink.wire import Incoming, Reaction
 from rover_bridge.params import Profile
-from rover_bridge.wire import Incoming, Reaction
 from sitl import Emulator, VehicleConfig
 
 pytestmark = pytest.mark.e2e
@@ -183,8 +183,8 @@ def test_sigterm_and_sigint_during_motion_release_the_overrides_in_20_trials() -
     assert failures == [], "\n".join(failures)
 
 
-class ExplodingCore(Core):
-    """A Core whose handle raises on the Nth velocity request (a bug in a handler)."""
+class ExplodingCore(BridgeCore):
+    """A BridgeCore whose handle raises on the Nth velocity request (a bug in a handler)."""
 
     explode_on = "SET_POSITION_TARGET_LOCAL_NED"
     after = 15
@@ -203,7 +203,7 @@ class ExplodingCore(Core):
 
 def test_an_exception_in_a_handler_ends_in_neutral_then_release_and_exit_status_1(
         monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
-    monkeypatch.setattr(run_command, "Core", ExplodingCore)
+    monkeypatch.setattr(run_command, "BridgeCore", ExplodingCore)
     emu = Emulator(VehicleConfig(start_armed=True), seed=99)
     emu.open("udpin:127.0.0.1:0")
     ap_port = emu.local_address[1]

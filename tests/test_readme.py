@@ -6,7 +6,7 @@ import re
 import subprocess
 from pathlib import Path
 
-from rover_bridge.cli import build_parser
+from rover_bridge.app.cli import build_parser
 from rover_bridge.params import iter_params, markdown_table
 
 REPO = Path(__file__).resolve().parents[1]

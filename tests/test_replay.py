@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 from lockstep import Lockstep
 
-from rover_bridge.cli import main as cli_main
+from rover_bridge.app.cli import main as cli_main
+from rover_bridge.app.replay import compare, replay
 from rover_bridge.params import Profile
-from rover_bridge.replay import compare, replay
 from sitl import VehicleConfig
 
 pytestmark = pytest.mark.e2e

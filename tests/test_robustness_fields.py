@@ -1,6 +1,6 @@
 """Every numeric field of every accepted message at NaN, +-inf, extremes and out-of-range values.
 
-The whole pure Core is set up so that a valid request WOULD drive (armed vehicle, fresh attitude,
+The whole pure BridgeCore is set up so that a valid request WOULD drive (armed vehicle, fresh attitude,
 wheel and gyro streams running). Then one message with one poisoned field arrives:
 - a velocity request is rejected with a counted reason (`rejected.<reason>`), no request is held
   and every wheel output stays neutral;
@@ -17,10 +17,10 @@ from typing import Any
 
 import pytest
 
-from rover_bridge.core import Core
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 from rover_bridge.params import Profile
-from rover_bridge.wire import Incoming, Link, Outgoing
 
 P = Profile()
 TRIM = P.output.pwm_trim
@@ -64,7 +64,7 @@ class Rig:
         return rig
 
     def __init__(self) -> None:
-        self.core = Core(P)
+        self.core = BridgeCore(P)
         self.ap = mavlink.MAVLink(None, 1, 1)
         self.gcs = mavlink.MAVLink(None, 255, 190)
         self.t_s = 0.0

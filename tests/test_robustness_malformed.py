@@ -3,10 +3,10 @@
 Bulk: a seeded mutator starts from valid frames of every message type the bridge handles (both
 links, signed and unsigned) and flips, overwrites, truncates, inserts, deletes and splices bytes.
 Each mutated datagram goes through the real shell (Runner.step -> Endpoint.read -> pymavlink's
-parser as the Endpoint configures it -> Core.handle -> forward / send), with the socket I/O of the
+parser as the Endpoint configures it -> BridgeCore.handle -> forward / send), with the socket I/O of the
 two Endpoints replaced by a byte queue (a few thousand also go through real UDP sockets).
 Structure: Hypothesis builds messages field by field (any bit pattern, NaN and infinities included)
-and random byte strings, fed the same way through a fresh parser and Core.
+and random byte strings, fed the same way through a fresh parser and BridgeCore.
 
 Checked on every datagram: nothing escapes the loop; every wheel output the bridge sends is
 neutral (trim) unless the core holds a valid non-zero request (only possible when a mutation leaves
@@ -27,13 +27,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from lockstep import free_udp_port
 
-from rover_bridge.core import Core
-from rover_bridge.links import Endpoint
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.app.runner import Runner
+from rover_bridge.command.setpoints import BodyVelocity
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.links import Endpoint
+from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 from rover_bridge.params import Profile
-from rover_bridge.runner import Runner
-from rover_bridge.setpoints import BodyVelocity
-from rover_bridge.wire import Incoming, Link, Outgoing
 
 TRIM = Profile().output.pwm_trim
 LEFT, RIGHT = Profile().output.left_channel, Profile().output.right_channel
@@ -155,7 +155,7 @@ class Mutator:
 class Oracle:
     """Checks every Outgoing the core produces."""
 
-    def __init__(self, core: Core) -> None:
+    def __init__(self, core: BridgeCore) -> None:
         self.core = core
         self.outputs = 0
         self.driving_allowed = 0  # datagrams after which the core held a valid non-zero request
@@ -246,7 +246,7 @@ class QueueLink:
 
 class Rig:
     def __init__(self) -> None:
-        self.core = Core(Profile())
+        self.core = BridgeCore(Profile())
         ids = {"source_system": 1, "source_component": 191}
         self.ap = Endpoint(f"udpin:127.0.0.1:{free_udp_port()}", Link.AUTOPILOT, **ids)
         self.gcs = Endpoint(f"udpin:127.0.0.1:{free_udp_port()}", Link.GCS, **ids)
@@ -371,10 +371,10 @@ HANDLED = [mavlink.MAVLink_set_position_target_local_ned_message,
 
 
 class PureRig:
-    """A fresh Core behind a parser configured like the Endpoint's (robust parsing), no sockets."""
+    """A fresh BridgeCore behind a parser configured like the Endpoint's (robust parsing), no sockets."""
 
     def __init__(self) -> None:
-        self.core = Core(Profile())
+        self.core = BridgeCore(Profile())
         self.oracle = Oracle(self.core)
         self.parsers = {link: mavlink.MAVLink(None) for link in Link}
         for p in self.parsers.values():

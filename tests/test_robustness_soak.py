@@ -2,7 +2,7 @@
 
 One simulated hour through UDP sockets in lockstep takes minutes of CI time, so this soak is
 pure-core: the sitl emulator's own messages (Emulator(record_sent=True), re-decoded from their
-bytes) go into Core.handle, and the Core's outgoing messages go into Emulator.handle_message
+bytes) go into BridgeCore.handle, and the BridgeCore's outgoing messages go into Emulator.handle_message
 (packed with their source ids and decoded again), all on one simulated clock stepped at the
 control period. The GCS drives a repeating pattern (arcs, reversing, stops that time out and brake,
 and a few rejected requests). Accelerated so the hour fits in CI: the control loop runs at 8 Hz (the
@@ -27,10 +27,10 @@ import sys
 import tracemalloc
 from typing import Any
 
-from rover_bridge.core import Core
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 from rover_bridge.params import Profile
-from rover_bridge.wire import Incoming, Link, Outgoing
 from sitl import Emulator, VehicleConfig
 
 # The control period (command.rate_hz = 8 here), one emulator step each. 1/8 s is exact in binary,
@@ -42,7 +42,7 @@ MINUTES = 60
 BODY_VEL = 0b0000_0101_1100_0111
 
 
-def sizes(core: Core, emu: Emulator) -> dict[str, int]:
+def sizes(core: BridgeCore, emu: Emulator) -> dict[str, int]:
     """Lengths of every internal collection that could grow with time."""
     est: Any = core.estimate
     return {
@@ -74,7 +74,7 @@ class Soak:
         p = dataclasses.replace(p, command=dataclasses.replace(p.command, rate_hz=1.0 / DT_S),
                                 estimator=dataclasses.replace(p.estimator, stream_rate_hz=2.0),
                                 odometry=dataclasses.replace(p.odometry, rate_hz=2.0))
-        self.core = Core(p)
+        self.core = BridgeCore(p)
         self.emu = Emulator(VehicleConfig(start_armed=True, physics_dt_s=DT_S), seed=17, record_sent=True)
         self.gcs = mavlink.MAVLink(None, 255, 190)
         self.parser = mavlink.MAVLink(None)
@@ -187,7 +187,7 @@ def test_control_rate_does_not_drift_when_the_loop_wakes_late() -> None:
     Scheduling each output one period after the late one would stretch every period by the lateness
     (19.4 Hz instead of 20 here); the output grid must hold: 1200 outputs every minute.
     """
-    core = Core(Profile())
+    core = BridgeCore(Profile())
     ap, parser = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None)
     heartbeat = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
                                                   mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 0, mavlink.MAV_STATE_ACTIVE, 3)

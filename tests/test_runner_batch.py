@@ -10,12 +10,12 @@ from collections.abc import Iterator
 import pytest
 from lockstep import free_udp_port
 
-from rover_bridge.core import Core
-from rover_bridge.links import Endpoint
-from rover_bridge.mav import mavlink
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.app.runner import Runner
+from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.mavlink.links import Endpoint
+from rover_bridge.mavlink.wire import Link
 from rover_bridge.params import Profile
-from rover_bridge.runner import Runner
-from rover_bridge.wire import Link
 
 
 def _frames(n: int) -> list[bytes]:
@@ -31,7 +31,7 @@ def _frames(n: int) -> list[bytes]:
 def rig() -> Iterator[tuple[Runner, socket.socket, int]]:
     port = free_udp_port()
     ap = Endpoint(f"udpin:127.0.0.1:{port}", Link.AUTOPILOT)
-    runner = Runner(Core(Profile()), ap, [])
+    runner = Runner(BridgeCore(Profile()), ap, [])
     sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     yield runner, sender, port
     sender.close()

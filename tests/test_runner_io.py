@@ -10,14 +10,14 @@ from collections.abc import Iterator
 
 import pytest
 
-from rover_bridge.core import Core
-from rover_bridge.demo import free_udp_port
-from rover_bridge.framing import Framer
-from rover_bridge.links import MAX_WRITE_BYTES, Endpoint
-from rover_bridge.mav import mavlink
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.app.demo import free_udp_port
+from rover_bridge.app.runner import Runner
+from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.mavlink.framing import Framer
+from rover_bridge.mavlink.links import MAX_WRITE_BYTES, Endpoint
+from rover_bridge.mavlink.wire import Link
 from rover_bridge.params import Profile
-from rover_bridge.runner import Runner
-from rover_bridge.wire import Link
 
 LOCAL = "127.0.0.1"
 BATCH_MS = 40.0
@@ -35,7 +35,7 @@ class Rig:
         batched = dataclasses.replace(profile.mavlink, autopilot_batch_ms=batch_ms)
         profile = dataclasses.replace(profile, mavlink=batched)
         self.ap_port, self.gcs_port = free_udp_port(), free_udp_port()
-        self.runner = Runner(Core(profile), Endpoint(f"udpin:{LOCAL}:{self.ap_port}", Link.AUTOPILOT),
+        self.runner = Runner(BridgeCore(profile), Endpoint(f"udpin:{LOCAL}:{self.ap_port}", Link.AUTOPILOT),
                              [Endpoint(f"udpin:{LOCAL}:{self.gcs_port}", Link.GCS)])
         self.ap = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -2,7 +2,7 @@
 
 Frames are built with pymavlink's own signing (as a signing GCS would send them) and fed through the
 parser of a real Endpoint with signing set up (the bytes the bridge would read), then into the whole
-pure Core exactly as the Runner does (`Incoming(..., signed_ok=runner._signed_ok(ep, msg))`).
+pure BridgeCore exactly as the Runner does (`Incoming(..., signed_ok=runner._signed_ok(ep, msg))`).
 """
 
 from __future__ import annotations
@@ -18,25 +18,17 @@ from typing import Any
 import pytest
 from lockstep import Lockstep, free_udp_port
 
-from rover_bridge import cli
-from rover_bridge.core import Core
+from rover_bridge.app import cli
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.app.logs import LogRateLimit
+from rover_bridge.app.runner import _signed_ok
 from rover_bridge.errors import ConfigError
-from rover_bridge.links import Endpoint
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.gate import BAD_SIGNATURE, SOURCE_NOT_ALLOWED, UNSIGNED
+from rover_bridge.mavlink.links import Endpoint
+from rover_bridge.mavlink.signing import SignatureVerifier, carries_signature, key_from_bytes, load_key, passphrase_key
+from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 from rover_bridge.params import Profile, SecurityParams
-from rover_bridge.runner import _signed_ok
-from rover_bridge.security import (
-    BAD_SIGNATURE,
-    SOURCE_NOT_ALLOWED,
-    UNSIGNED,
-    LogRateLimit,
-    SignatureVerifier,
-    carries_signature,
-    key_from_bytes,
-    load_key,
-    passphrase_key,
-)
-from rover_bridge.wire import Incoming, Link, Outgoing
 from sitl import VehicleConfig
 
 KEY = bytes(range(32))
@@ -73,10 +65,10 @@ def vehicle_heartbeat() -> MAVLinkMessage:
 
 
 class Rig:
-    """The whole Core behind a GCS Endpoint with signing (parser only: bytes are fed, not received)."""
+    """The whole BridgeCore behind a GCS Endpoint with signing (parser only: bytes are fed, not received)."""
 
     def __init__(self, prof: Profile, key: bytes | None = KEY) -> None:
-        self.core = Core(prof)
+        self.core = BridgeCore(prof)
         self.ep = Endpoint(f"udpin:127.0.0.1:{free_udp_port()}", Link.GCS)
         self.verifier = SignatureVerifier(KEY, T0)
         if key is not None:
@@ -287,7 +279,7 @@ def test_a_bad_signature_never_counts_as_signed_ok() -> None:
 
 
 def test_the_command_core_alone_is_as_strict() -> None:
-    core = Core(secured())
+    core = BridgeCore(secured())
     core.handle(Incoming(Link.AUTOPILOT, Rig.decode_plain(vehicle_heartbeat().pack(signer(None, 1, 1)))), 0.0)
     msg = Rig.decode_plain(request().pack(signer(None)))
     reaction = core.command.handle(Incoming(Link.GCS, msg, signed_ok=False), 0.1)  # bypassing the gate
@@ -407,7 +399,7 @@ def test_frames_the_bridge_sends_to_the_gcs_are_signed() -> None:
 
 def test_log_rate_limit_bounds_a_flood_and_counts_what_it_dropped() -> None:
     flt = LogRateLimit(rate_per_s=2.0, burst=10.0)
-    logger = logging.getLogger("rover_bridge.links")
+    logger = logging.getLogger("rover_bridge.mavlink.links")
     passed = []
     for i in range(10_000):
         record = logger.makeRecord(logger.name, logging.DEBUG, __file__, 1, "%s: undecodable input dropped: %s",

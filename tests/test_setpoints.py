@@ -13,10 +13,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rover_bridge.kinematics import Twist2D
-from rover_bridge.mav import MAVLinkMessage, mavlink
-from rover_bridge.params import CommandParams
-from rover_bridge.setpoints import (
+from rover_bridge.command.setpoints import (
     BodyVelocity,
     HeadingVelocity,
     Rejected,
@@ -24,6 +21,9 @@ from rover_bridge.setpoints import (
     decode_position_target,
     decode_request,
 )
+from rover_bridge.kinematics import Twist2D
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.params import CommandParams
 
 # Type masks computed by hand from the bit values x=1 y=2 z=4 vx=8 vy=16 vz=32 ax=64 ay=128 az=256
 # force=512 yaw=1024 yaw_rate=2048.

@@ -6,8 +6,8 @@ import math
 
 import pytest
 
+from rover_bridge.estimate.wheel_input import StepKind, WheelInput
 from rover_bridge.params import EncoderParams, RobotParams
-from rover_bridge.wheel_input import StepKind, WheelInput
 
 ROBOT = RobotParams(wheel_radius_m=0.05, track_width_m=0.3, max_wheel_rpm=200.0)
 # fastest surface speed: 200 rpm * 2 pi / 60 * 0.05 m = 1.0472 m/s; a spike is > 2x that over dt (+5 mm)

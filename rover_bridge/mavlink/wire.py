@@ -10,7 +10,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-from rover_bridge.mav import MAVLinkMessage
+from rover_bridge.mavlink.dialect import MAVLinkMessage
 
 
 class Link(enum.Enum):

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from rover_bridge.frames import mavlink_yaw_rate_from_omega
-from rover_bridge.mav import mavlink, mavutil
+from rover_bridge.mavlink.dialect import mavlink, mavutil
 from rover_bridge.odometry import WheelOdometry
 
 GCS_SYSID = 255

@@ -38,15 +38,8 @@ import enum
 import logging
 import math
 
-from rover_bridge.identity import Identity
-from rover_bridge.kinematics import DiffDrive, Twist2D
-from rover_bridge.limits import TwistLimiter, TwistLimits
-from rover_bridge.mav import MAVLinkMessage, mavlink
-from rover_bridge.outputs import OutputMap, WheelPwm
-from rover_bridge.params import Profile
-from rover_bridge.report import Reporter
-from rover_bridge.security import SecurityPolicy
-from rover_bridge.setpoints import (
+from rover_bridge.command.outputs import OutputMap, WheelPwm
+from rover_bridge.command.setpoints import (
     REQUEST_TYPES,
     BodyVelocity,
     HeadingVelocity,
@@ -54,7 +47,14 @@ from rover_bridge.setpoints import (
     Request,
     decode_request,
 )
-from rover_bridge.wire import NOTHING, Incoming, Link, Outgoing, Reaction
+from rover_bridge.kinematics import DiffDrive, Twist2D
+from rover_bridge.limits import TwistLimiter, TwistLimits
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.gate import SecurityPolicy
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import NOTHING, Incoming, Link, Outgoing, Reaction
+from rover_bridge.params import Profile
 
 log = logging.getLogger("rover_bridge.command")
 
@@ -123,7 +123,7 @@ class CommandCore:
 
     # ----------------------------------------------------------------- SubCore protocol
 
-    # What handle() reads from the autopilot link (Core decodes nothing else from it).
+    # What handle() reads from the autopilot link (BridgeCore decodes nothing else from it).
     AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK"})
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
@@ -181,7 +181,7 @@ class CommandCore:
     def _authorised(self, inc: Incoming) -> bool:
         """[security] (signature, allow-list): may this source command the rover?
 
-        Core's CommandGate refuses such frames before they get here (and counts them by reason); this
+        BridgeCore's CommandGate refuses such frames before they get here (and counts them by reason); this
         second check keeps a CommandCore used on its own just as strict.
         """
         return self.security.reason(inc, self.identity) is None

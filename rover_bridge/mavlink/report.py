@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import logging
 
-from rover_bridge.identity import Identity
-from rover_bridge.mav import mavlink
-from rover_bridge.ratelimit import RateLimiter
-from rover_bridge.wire import Link, Outgoing
+from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.ratelimit import RateLimiter
+from rover_bridge.mavlink.wire import Link, Outgoing
 
 log = logging.getLogger("rover_bridge")
 

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 from rover_bridge import frames
 from rover_bridge.kinematics import Twist2D
-from rover_bridge.mav import MAVLinkMessage
+from rover_bridge.mavlink.dialect import MAVLinkMessage
 from rover_bridge.params import CommandParams
 
 # POSITION_TARGET_TYPEMASK bits (set = ignore that field).

@@ -1,8 +1,8 @@
 """The whole pure core: messages and the current time in, messages out. No sockets, no clock.
 
-`Core` composes the command flow (rover_bridge.bridge.CommandCore) and the estimate flow
-(rover_bridge.estimation.EstimateCore), which share one Identity and one Reporter, and sends
-the bridge's own HEARTBEAT. The shell (rover_bridge.runner) feeds every decoded message to
+`BridgeCore` composes the command flow (rover_bridge.command.core.CommandCore) and the estimate flow
+(rover_bridge.estimate.core.EstimateCore), which share one Identity and one Reporter, and sends
+the bridge's own HEARTBEAT. The shell (rover_bridge.app.runner) feeds every decoded message to
 `handle`, calls `tick` at `next_deadline_s()`, and calls `shutdown` on every exit path.
 """
 
@@ -10,14 +10,14 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from rover_bridge.bridge import CommandCore
-from rover_bridge.estimation import EstimateCore
-from rover_bridge.identity import Identity
-from rover_bridge.mav import mavlink
+from rover_bridge.command.core import CommandCore
+from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.mavlink.gate import BRIDGE_COMMANDS, CommandGate
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import NOTHING, Incoming, Link, Outgoing, Reaction
 from rover_bridge.params import Profile
-from rover_bridge.report import Reporter
-from rover_bridge.security import BRIDGE_COMMANDS, CommandGate
-from rover_bridge.wire import NOTHING, Incoming, Link, Outgoing, Reaction
 
 HEARTBEAT_PERIOD_S = 1.0
 
@@ -29,7 +29,7 @@ class SubCore(Protocol):
     def shutdown(self, now_s: float) -> list[Outgoing]: ...
 
 
-class Core:
+class BridgeCore:
     def __init__(self, profile: Profile) -> None:
         self.profile = profile
         self.identity = Identity.from_profile(profile)

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from rover_bridge.mavlink.wire import Incoming, Link
 from rover_bridge.params import profile_from_dict
-from rover_bridge.wire import Incoming, Link
 from sitl import Emulator, Scenario, VehicleConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))

@@ -1,7 +1,7 @@
 """The estimate flow's state machine (pure): autopilot telemetry + time in, ODOMETRY and requests out.
 
 Inputs (read, never consumed: the shell still forwards them to the ground stations)
-- WHEEL_DISTANCE (9000) -> rover_bridge.wheel_input (indices, signs, reboots, spikes);
+- WHEEL_DISTANCE (9000) -> rover_bridge.estimate.wheel_input (indices, signs, reboots, spikes);
 - the gyro, per [estimator] gyro_source: ATTITUDE.yawspeed (rad/s), SCALED_IMU.zgyro (mrad/s) or
   RAW_IMU.zgyro (assumed mrad/s: ArduPilot fills RAW_IMU with scaled values, not ADC counts);
   'auto' uses the highest-priority one that is arriving (ATTITUDE, SCALED_IMU, RAW_IMU in that
@@ -68,16 +68,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from rover_bridge import frames
-from rover_bridge.estimator import IB, IV, IW, IX, IY, IYAW, NoiseModel, WheelGyroEKF
-from rover_bridge.identity import Identity
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.estimate.ekf import IB, IV, IW, IX, IY, IYAW, NoiseModel, WheelGyroEKF
+from rover_bridge.estimate.wheel_input import StepKind, WheelInput
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import NOTHING, Incoming, Link, Outgoing, Reaction
 from rover_bridge.odometry import Pose2D, arc_step, wrap_angle
 from rover_bridge.params import Profile
-from rover_bridge.report import Reporter
-from rover_bridge.wheel_input import StepKind, WheelInput
-from rover_bridge.wire import NOTHING, Incoming, Link, Outgoing, Reaction
 
-log = logging.getLogger("rover_bridge.estimation")
+log = logging.getLogger("rover_bridge.estimate.core")
 
 POSE_RESET_COMMAND = mavlink.MAV_CMD_USER_1
 # A pose reset beyond these is garbage (a corrupted frame, degrees for metres), not a place: denied.
@@ -297,7 +297,7 @@ class EstimateCore:
         )
 
     # ------------------------------------------------------------------ SubCore
-    # What handle() may read from the autopilot link (Core decodes nothing else from it); of the
+    # What handle() may read from the autopilot link (BridgeCore decodes nothing else from it); of the
     # gyro messages only those `gyro_reads` names at the time.
     AUTOPILOT_READS = frozenset({"COMMAND_LONG", "HEARTBEAT", "WHEEL_DISTANCE", "ATTITUDE", "SCALED_IMU", "RAW_IMU",
                                  "SYSTEM_TIME", "COMMAND_ACK"})

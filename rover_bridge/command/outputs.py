@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass
 
 from rover_bridge.kinematics import WheelSpeeds
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.params import Profile
 
 RC_CHANNELS = 18

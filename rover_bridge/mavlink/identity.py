@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from rover_bridge.mav import mavlink
+from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import Profile
 
 # Autopilot types we take a vehicle heartbeat from; GCSs and companions also send HEARTBEAT.

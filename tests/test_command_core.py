@@ -18,13 +18,13 @@ from collections.abc import Sequence
 
 import pytest
 
-from rover_bridge.bridge import CommandCore, State
-from rover_bridge.core import Core
-from rover_bridge.identity import Identity
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.command.core import CommandCore, State
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import Incoming, Link, Outgoing, Reaction
 from rover_bridge.params import LimitsParams, Profile
-from rover_bridge.report import Reporter
-from rover_bridge.wire import Incoming, Link, Outgoing, Reaction
 
 VEL_YAW_RATE = 1479  # use vx, vy, vz, yaw_rate
 VEL_ONLY = 3527  # use vx, vy, vz
@@ -582,11 +582,11 @@ def test_shutdown_before_the_vehicle_is_known_sends_no_override() -> None:
     assert [o.msg.get_type() for o in rig.core.shutdown(0.0)] == ["STATUSTEXT"]
 
 
-# ------------------------------------------------------------------ through the composed Core
+# ------------------------------------------------------------------ through the composed BridgeCore
 
 
 def test_composed_core_consumes_the_request_and_shuts_down_neutral_then_release() -> None:
-    core = Core(profile())
+    core = BridgeCore(profile())
     ap = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
     hb = Rig.wire(ap, mavlink.MAVLink_heartbeat_message(

@@ -9,14 +9,14 @@ from typing import Any
 import pytest
 from synthetic_drive import TrueGeometry, drive
 
-from rover_bridge.estimation import POSE_RESET_COMMAND, EstimateCore, upper_triangle_21
+from rover_bridge.estimate.core import POSE_RESET_COMMAND, EstimateCore, upper_triangle_21
 from rover_bridge.frames import covariance_frd_from_flu
-from rover_bridge.identity import Identity
-from rover_bridge.mav import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 from rover_bridge.odometry import Pose2D
 from rover_bridge.params import Profile, profile_from_dict
-from rover_bridge.report import Reporter
-from rover_bridge.wire import Incoming, Link, Outgoing
 
 L = 0.30
 
@@ -427,13 +427,13 @@ def test_arrival_jitter_does_not_change_the_estimate() -> None:
 
 
 def test_only_the_gyro_sources_in_use_are_decoded_and_a_silent_one_opens_the_others() -> None:
-    """Core.reads (what the shell decodes from the autopilot) follows the gyro source: a lower-priority
+    """BridgeCore.reads (what the shell decodes from the autopilot) follows the gyro source: a lower-priority
     IMU stream is forwarded undecoded while ATTITUDE is used, and read again once ATTITUDE falls silent."""
-    from rover_bridge.core import Core
-    from rover_bridge.estimation import GYRO_SILENT_S
+    from rover_bridge.app.composition import BridgeCore
+    from rover_bridge.estimate.core import GYRO_SILENT_S
 
     imu = {mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_SCALED_IMU}
-    core = Core(profile_from_dict({}))
+    core = BridgeCore(profile_from_dict({}))
     ap_reads = core.reads(Link.AUTOPILOT)
     assert ap_reads is not None and imu <= ap_reads  # no source yet: every one is read
     assert core.reads(Link.GCS) is None  # a ground station's frames are all judged by the gate
@@ -456,9 +456,9 @@ def test_only_the_gyro_sources_in_use_are_decoded_and_a_silent_one_opens_the_oth
 
 
 def test_a_fixed_gyro_source_is_the_only_imu_decoded() -> None:
-    from rover_bridge.core import Core
+    from rover_bridge.app.composition import BridgeCore
 
-    core = Core(profile_from_dict({"estimator": {"gyro_source": "raw_imu"}}))
+    core = BridgeCore(profile_from_dict({"estimator": {"gyro_source": "raw_imu"}}))
     ap_reads = core.reads(Link.AUTOPILOT)
     assert ap_reads is not None
     assert mavlink.MAVLINK_MSG_ID_RAW_IMU in ap_reads and mavlink.MAVLINK_MSG_ID_SCALED_IMU not in ap_reads

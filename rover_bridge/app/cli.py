@@ -1,4 +1,4 @@
-"""`rover-bridge` command line: one subcommand per module in rover_bridge.commands.
+"""`rover-bridge` command line: one subcommand per module in rover_bridge.app.commands.
 
 Each command module exposes `NAME`, `HELP`, `add_arguments(parser)` and `main(args) -> int`.
 Exit codes: 0 ok, 1 runtime failure, 2 bad configuration or usage.
@@ -14,15 +14,15 @@ import sys
 from types import ModuleType
 
 from rover_bridge import __version__
+from rover_bridge.app.logs import install_log_rate_limit
 from rover_bridge.errors import ConfigError
-from rover_bridge.security import install_log_rate_limit
 
 # Each subcommand lives in its own module (rover_bridge/commands/NAME.py).
 COMMAND_MODULES = ("run", "demo", "replay", "check_params", "ik")
 
 
 def _load(module_name: str) -> ModuleType:
-    return importlib.import_module(f"rover_bridge.commands.{module_name}")
+    return importlib.import_module(f"rover_bridge.app.commands.{module_name}")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -19,11 +19,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rover_bridge.core import Core
+from rover_bridge.app.composition import BridgeCore
 from rover_bridge.errors import ConfigError
-from rover_bridge.mav import mavlink, mavutil
+from rover_bridge.mavlink.dialect import mavlink, mavutil
+from rover_bridge.mavlink.wire import Incoming, Link
 from rover_bridge.params import Profile
-from rover_bridge.wire import Incoming, Link
 
 CSV_COLUMNS = ("time_usec", "x_m", "y_m", "yaw_rad", "vx_m_s", "yawspeed_rad_s", "var_x_m2", "var_y_m2",
                "var_yaw_rad2", "var_vx", "var_yawspeed", "reset_counter", "quality")
@@ -127,7 +127,7 @@ def replay(path: str | Path, profile: Profile) -> ReplayResult:
     path = Path(path)
     own_comp = profile.mavlink.component_id
     ticks_from_log = any(m.get_srcComponent() == own_comp and m.get_type() == "ODOMETRY" for m in _frames(path))
-    core = Core(profile)
+    core = BridgeCore(profile)
     rows: list[OdometryRow] = []
     live: list[OdometryRow] = []
     frames = ap_frames = 0
@@ -162,7 +162,7 @@ def replay(path: str | Path, profile: Profile) -> ReplayResult:
     return ReplayResult(tuple(rows), tuple(live), frames, ap_frames, dict(core.estimate.counters), str(calibration))
 
 
-def _from_autopilot(core: Core, msg: Any) -> bool:
+def _from_autopilot(core: BridgeCore, msg: Any) -> bool:
     if msg.get_type() == "HEARTBEAT":
         return core.identity.is_autopilot_heartbeat(msg)
     vehicle = core.identity.vehicle_system_id

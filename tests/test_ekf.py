@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from rover_bridge.estimator import (
+from rover_bridge.estimate.ekf import (
     IB,
     IKR,
     IKT,

@@ -17,8 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from rover_bridge.app.replay import replay, write_csv
     from rover_bridge.params import load_profile
-    from rover_bridge.replay import replay, write_csv
 
     profile = load_profile(args.params)
     result = replay(args.log, profile)

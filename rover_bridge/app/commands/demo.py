@@ -12,7 +12,7 @@ HELP = ("start the sitl emulator and the bridge as separate processes on UDP loo
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from rover_bridge.demo import SCENARIOS
+    from rover_bridge.app.demo import SCENARIOS
 
     parser.add_argument("--scenario", default="clean", choices=sorted(SCENARIOS),
                         help="conditions: clean, miscalibrated (2 %% radius / 3 %% track error), slip, gyro-bias")
@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from rover_bridge.demo import run_demo
+    from rover_bridge.app.demo import run_demo
 
     plot_path = None if args.plot.lower() == "none" else Path(args.plot)
     try:

@@ -15,13 +15,13 @@ import time
 from dataclasses import replace
 from types import FrameType
 
-from rover_bridge.core import Core
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.app.runner import Runner, TlogWriter
 from rover_bridge.errors import ConfigError
-from rover_bridge.links import Endpoint, check_url
+from rover_bridge.mavlink.links import Endpoint, check_url
+from rover_bridge.mavlink.signing import SignatureVerifier, load_key, signing_timestamp
+from rover_bridge.mavlink.wire import Link
 from rover_bridge.params import load_profile
-from rover_bridge.runner import Runner, TlogWriter
-from rover_bridge.security import SignatureVerifier, load_key, signing_timestamp
-from rover_bridge.wire import Link
 
 NAME = "run"
 HELP = "bridge an autopilot and ground stations: velocity requests in, wheel overrides and ODOMETRY out"
@@ -63,7 +63,7 @@ def main(args: argparse.Namespace) -> int:
         problems.append(f"--duration: expected a positive number of seconds, got {args.duration}")
     if problems:
         raise ConfigError(problems)
-    core = Core(profile)
+    core = BridgeCore(profile)
     own_sys, own_comp = core.identity.own_system_id, core.identity.component_id
     autopilot = Endpoint(args.autopilot, Link.AUTOPILOT, source_system=own_sys, source_component=own_comp)
     gcs = [Endpoint(u, Link.GCS, source_system=own_sys, source_component=own_comp) for u in gcs_urls]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from rover_bridge.mav import mavlink
+from rover_bridge.mavlink.dialect import mavlink
 
 V1, V2 = mavlink.PROTOCOL_MARKER_V1, mavlink.PROTOCOL_MARKER_V2
 SIGNED = mavlink.MAVLINK_IFLAG_SIGNED

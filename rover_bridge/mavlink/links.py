@@ -15,11 +15,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from rover_bridge.errors import ConfigError
-from rover_bridge.framing import Framer, crc_ok, msg_id
-from rover_bridge.mav import MAVLinkMessage, mavlink, mavutil
-from rover_bridge.wire import Link
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink, mavutil
+from rover_bridge.mavlink.framing import Framer, crc_ok, msg_id
+from rover_bridge.mavlink.wire import Link
 
-log = logging.getLogger("rover_bridge.links")
+log = logging.getLogger("rover_bridge.mavlink.links")
 
 # Receive buffer asked for UDP links (the kernel caps it at net.core.rmem_max).
 UDP_RCVBUF_BYTES = 1 << 20
@@ -81,7 +81,7 @@ class Endpoint:
                 dialect="ardupilotmega", autoreconnect=True, robust_parsing=True)
         except OSError as exc:
             raise ConfigError([f"{self.url}: cannot open ({exc.strerror or exc})"]) from exc
-        if self.conn.WIRE_PROTOCOL_VERSION != "2.0":  # pragma: no cover - guarded by rover_bridge.mav
+        if self.conn.WIRE_PROTOCOL_VERSION != "2.0":  # pragma: no cover - guarded by rover_bridge.mavlink.dialect
             raise ConfigError([f"{self.url}: pymavlink did not select MAVLink 2"])
         port = getattr(self.conn, "port", None)
         if isinstance(port, socket.socket) and port.type == socket.SOCK_DGRAM:
@@ -109,7 +109,7 @@ class Endpoint:
         decode_only); bad frames are counted and dropped here.
 
         The hot path of the bridge. It reads what the link has (one datagram, or up to RECV_CHUNK
-        bytes of a stream) and delimits frames itself (rover_bridge.framing, as pymavlink's robust
+        bytes of a stream) and delimits frames itself (rover_bridge.mavlink.framing, as pymavlink's robust
         parser would), then decodes a frame with pymavlink's `decode` only if a core reads it: most
         of an autopilot's telemetry is only forwarded, and a forwarded frame needs its CRC checked,
         not a message object. mavutil's `recv_msg` bookkeeping (per-sysid tables, loss counts) is

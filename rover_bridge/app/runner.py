@@ -21,13 +21,13 @@ import time
 from collections.abc import Callable, Sequence
 from typing import BinaryIO
 
-from rover_bridge.core import Core
-from rover_bridge.links import Endpoint, RawFrame
-from rover_bridge.mav import MAVLinkMessage
-from rover_bridge.security import carries_signature
-from rover_bridge.wire import Incoming, Link, Outgoing
+from rover_bridge.app.composition import BridgeCore
+from rover_bridge.mavlink.dialect import MAVLinkMessage
+from rover_bridge.mavlink.links import Endpoint, RawFrame
+from rover_bridge.mavlink.signing import carries_signature
+from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 
-log = logging.getLogger("rover_bridge.runner")
+log = logging.getLogger("rover_bridge.app.runner")
 
 # Longest select() sleep: bounds how late a stop request or a missed deadline can be noticed.
 MAX_SLEEP_S = 0.05
@@ -55,7 +55,7 @@ class TlogWriter:
 
 
 class Runner:
-    def __init__(self, core: Core, autopilot: Endpoint, gcs: Sequence[Endpoint] = (),
+    def __init__(self, core: BridgeCore, autopilot: Endpoint, gcs: Sequence[Endpoint] = (),
                  tlog: TlogWriter | None = None) -> None:
         self.core = core
         self.autopilot = autopilot

@@ -1,0 +1,4 @@
+"""The application: the composition of both flows (BridgeCore), the runner (the one loop), the CLI and its
+commands, the demo and replay. The only place with sockets, clocks, signals and files.
+May import anything in rover_bridge.
+"""

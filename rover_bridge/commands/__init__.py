@@ -1,1 +1,0 @@
-"""Subcommands of the `rover-bridge` CLI, one module each (see rover_bridge.cli)."""
