@@ -872,7 +872,7 @@ def bench_memory_inprocess(args: argparse.Namespace) -> None:
     on the bridge's sockets, then one Runner.step takes them. Fast enough for a million messages
     in under two minutes; the harness allocates everything it sends before the first RSS reading."""
     from rover_bridge.app.composition import BridgeCore
-    from rover_bridge.app.runner import Runner
+    from rover_bridge.app.loop import Runner
     from rover_bridge.mavlink.links import Endpoint
     from rover_bridge.mavlink.wire import Link
     from rover_bridge.params import load_profile
@@ -1067,9 +1067,9 @@ def _load_tree_modules(root: Path) -> tuple[Any, Any]:
     """links and runner modules of another source tree (the rest of the package is this tree's)."""
     import importlib.util
     mods = []
-    for name, subdirs in (("links", ("mavlink", "")), ("runner", ("app", ""))):
+    for name, places in (("links", ("mavlink/links", "links")), ("runner", ("app/loop", "runner"))):
         # This tree's layout (packages by flow) or an older flat one.
-        path = next(p for p in (root / "rover_bridge" / sub / f"{name}.py" for sub in subdirs) if p.exists())
+        path = next(p for p in (root / "rover_bridge" / f"{place}.py" for place in places) if p.exists())
         spec = importlib.util.spec_from_file_location(f"_base_{name}", path)
         assert spec is not None and spec.loader is not None
         mod = importlib.util.module_from_spec(spec)
@@ -1087,7 +1087,7 @@ def bench_hotpath(args: argparse.Namespace) -> None:
     """CPU per message of one Runner.step over datagrams already queued on its UDP socket (no
     scheduling, no wake-ups: the code path alone), beside pymavlink's parse_buffer and BridgeCore.handle
     alone on the same frames; with --base, the shell (links.py + runner.py) of another tree too."""
-    from rover_bridge.app import runner as this_runner
+    from rover_bridge.app import loop as this_runner
     from rover_bridge.app.composition import BridgeCore
     from rover_bridge.mavlink import links as this_links
     from rover_bridge.mavlink.wire import Incoming, Link

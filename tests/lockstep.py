@@ -14,7 +14,7 @@ from typing import Any
 
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.demo import free_udp_port
-from rover_bridge.app.runner import Runner, TlogWriter
+from rover_bridge.app.loop import Runner, TlogWriter
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink, mavutil
 from rover_bridge.mavlink.links import Endpoint
 from rover_bridge.mavlink.wire import Link

@@ -9,7 +9,9 @@ from typing import Any
 import pytest
 from synthetic_drive import TrueGeometry, drive
 
-from rover_bridge.estimate.core import POSE_RESET_COMMAND, EstimateCore, upper_triangle_21
+from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.estimate.publish import upper_triangle_21
+from rover_bridge.estimate.resets import POSE_RESET_COMMAND
 from rover_bridge.frames import covariance_frd_from_flu
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.identity import Identity
@@ -430,7 +432,7 @@ def test_only_the_gyro_sources_in_use_are_decoded_and_a_silent_one_opens_the_oth
     """BridgeCore.reads (what the shell decodes from the autopilot) follows the gyro source: a lower-priority
     IMU stream is forwarded undecoded while ATTITUDE is used, and read again once ATTITUDE falls silent."""
     from rover_bridge.app.composition import BridgeCore
-    from rover_bridge.estimate.core import GYRO_SILENT_S
+    from rover_bridge.estimate.gyro import GYRO_SILENT_S
 
     imu = {mavlink.MAVLINK_MSG_ID_RAW_IMU, mavlink.MAVLINK_MSG_ID_SCALED_IMU}
     core = BridgeCore(profile_from_dict({}))

@@ -28,7 +28,7 @@ from hypothesis import strategies as st
 from lockstep import free_udp_port
 
 from rover_bridge.app.composition import BridgeCore
-from rover_bridge.app.runner import Runner
+from rover_bridge.app.loop import Runner
 from rover_bridge.command.setpoints import BodyVelocity
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.links import Endpoint

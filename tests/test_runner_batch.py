@@ -11,7 +11,7 @@ import pytest
 from lockstep import free_udp_port
 
 from rover_bridge.app.composition import BridgeCore
-from rover_bridge.app.runner import Runner
+from rover_bridge.app.loop import Runner
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.links import Endpoint
 from rover_bridge.mavlink.wire import Link

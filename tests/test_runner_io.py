@@ -12,7 +12,7 @@ import pytest
 
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.demo import free_udp_port
-from rover_bridge.app.runner import Runner
+from rover_bridge.app.loop import Runner
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.framing import Framer
 from rover_bridge.mavlink.links import MAX_WRITE_BYTES, Endpoint

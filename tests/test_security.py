@@ -21,7 +21,7 @@ from lockstep import Lockstep, free_udp_port
 from rover_bridge.app import cli
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.logs import LogRateLimit
-from rover_bridge.app.runner import _signed_ok
+from rover_bridge.app.loop import _signed_ok
 from rover_bridge.errors import ConfigError
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.gate import BAD_SIGNATURE, SOURCE_NOT_ALLOWED, UNSIGNED

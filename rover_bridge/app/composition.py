@@ -2,7 +2,7 @@
 
 `BridgeCore` composes the command flow (rover_bridge.command.core.CommandCore) and the estimate flow
 (rover_bridge.estimate.core.EstimateCore), which share one Identity and one Reporter, and sends
-the bridge's own HEARTBEAT. The shell (rover_bridge.app.runner) feeds every decoded message to
+the bridge's own HEARTBEAT. The shell (rover_bridge.app.loop) feeds every decoded message to
 `handle`, calls `tick` at `next_deadline_s()`, and calls `shutdown` on every exit path.
 """
 

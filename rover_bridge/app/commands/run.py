@@ -16,7 +16,7 @@ from dataclasses import replace
 from types import FrameType
 
 from rover_bridge.app.composition import BridgeCore
-from rover_bridge.app.runner import Runner, TlogWriter
+from rover_bridge.app.loop import Runner, TlogWriter
 from rover_bridge.errors import ConfigError
 from rover_bridge.mavlink.links import Endpoint, check_url
 from rover_bridge.mavlink.signing import SignatureVerifier, load_key, signing_timestamp

@@ -27,7 +27,7 @@ from rover_bridge.mavlink.links import Endpoint, RawFrame
 from rover_bridge.mavlink.signing import carries_signature
 from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 
-log = logging.getLogger("rover_bridge.app.runner")
+log = logging.getLogger("rover_bridge.app.loop")
 
 # Longest select() sleep: bounds how late a stop request or a missed deadline can be noticed.
 MAX_SLEEP_S = 0.05

@@ -1,0 +1,133 @@
+"""ODOMETRY (331) from the filter's state and covariance, on a fixed rate grid (pure).
+
+- time_usec: the caller's stamp on the autopilot's boot clock (rover_bridge.estimate.clock).
+- frame_id MAV_FRAME_LOCAL_FRD (origin and axes of the start pose), child_frame_id MAV_FRAME_BODY_FRD;
+  x forward, y right, z = 0; q from the FRD (clockwise) yaw; vx forward, vy = 0, vz = 0, yawspeed CW+.
+- covariances: the filter's x, y, yaw, v, yaw-rate blocks with the FRD sign flips
+  (frames.covariance_frd_from_flu); vy has a finite variance (LATERAL_SIGMA_* below: the wheels do
+  not side-slip much, but not never); z, roll, pitch and their rates are unobserved: each gets
+  [odometry] unobserved_variance (default 1e4 m^2 or rad^2, i.e. sigma 100: "unknown", as a number
+  rather than the NaN-first-element convention, which many receivers mishandle).
+- estimator_type MAV_ESTIMATOR_TYPE_UNKNOWN: the enum has no wheel/inertial dead-reckoning member;
+  NAIVE claims no covariance (PX4 then ignores the covariance) and VIO claims a camera, both false.
+- quality: 100 / (1 + sigma_xy / QUALITY_POS_M + sigma_yaw / QUALITY_YAW_RAD), rounded, clamped to
+  1..100 (sigma_xy: the larger principal standard deviation of x, y); 0 when the wheels are stale
+  (the estimate is then a blind extrapolation).
+"""
+
+# Kalman-filter notation (P for a covariance) reads better than pep8 names here.
+# ruff: noqa: N803
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rover_bridge import frames
+from rover_bridge.estimate.ekf import IV, IW, IX, IY, IYAW, Mat, Vec
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.wire import Link
+from rover_bridge.params import OdometryParams
+
+LATERAL_SIGMA_M_S = 0.02  # vy: skid-steer side slip, plus ...
+LATERAL_SIGMA_PER_M_S = 0.05  # ... a fraction of the forward speed ...
+LATERAL_SIGMA_PER_RAD_S = 0.05  # ... and of the yaw rate (m/s per rad/s)
+QUALITY_POS_M = 0.5
+QUALITY_YAW_RAD = math.radians(5.0)
+
+TARGET_LINKS: dict[str, tuple[Link, ...]] = {
+    "gcs": (Link.GCS,),
+    "autopilot": (Link.AUTOPILOT,),
+    "both": (Link.GCS, Link.AUTOPILOT),
+    "none": (),
+}
+
+
+def upper_triangle_21(cov: list[list[float]]) -> list[float]:
+    """The 21 numbers MAVLink carries for a symmetric 6x6: row-major upper triangle incl. diagonal."""
+    return [float(cov[i][j]) for i in range(6) for j in range(i, 6)]
+
+
+def sigma_xy(P: np.ndarray) -> float:
+    """Larger principal standard deviation of the x, y block (closed form for a 2x2)."""
+    a, b, c = float(P[IX, IX]), float(P[IX, IY]), float(P[IY, IY])
+    half_tr = 0.5 * (a + c)
+    lam = half_tr + math.sqrt(max(0.0, 0.25 * (a - c) ** 2 + b * b))
+    return math.sqrt(max(0.0, lam))
+
+
+def quality(P: np.ndarray, wheels_fresh: bool) -> int:
+    """ODOMETRY.quality (see the module docstring)."""
+    if not wheels_fresh:
+        return 0
+    sigma_yaw = math.sqrt(max(0.0, float(P[IYAW, IYAW])))
+    q = 100.0 / (1.0 + sigma_xy(P) / QUALITY_POS_M + sigma_yaw / QUALITY_YAW_RAD)
+    return max(1, min(100, round(q)))
+
+
+class OdometryPublisher:
+    """Where ODOMETRY goes, when the next one is due, and how one is packed."""
+
+    def __init__(self, params: OdometryParams) -> None:
+        self.links = TARGET_LINKS[params.targets]
+        self.unobserved_variance = params.unobserved_variance
+        self.period_s = 1.0 / params.rate_hz
+        self.next_s: float | None = None
+        self.sent = 0
+
+    def due(self, now_s: float) -> bool:
+        """True (and the grid moved on) when an ODOMETRY is due at now_s."""
+        if not self.links or not (self.next_s is None or now_s >= self.next_s):
+            return False
+        last = self.next_s
+        # Keep the grid; after a stall restart it instead of bursting the missed messages.
+        base = now_s if last is None or now_s - last > self.period_s else last
+        self.next_s = base + self.period_s
+        return True
+
+    def deadline_s(self, now_s: float) -> float | None:
+        if not self.links:
+            return None
+        return now_s if self.next_s is None else self.next_s
+
+    def message(self, x: Vec, P: Mat, time_usec: int, reset_counter: int, quality_0_100: int) -> MAVLinkMessage:
+        """ODOMETRY for state x with covariance P (rover-bridge's FLU convention) at time_usec."""
+        big = self.unobserved_variance
+        v, w = float(x[IV]), float(x[IW])
+        pose_flu = [[0.0] * 6 for _ in range(6)]
+        vel_flu = [[0.0] * 6 for _ in range(6)]
+        for a, ia in ((0, IX), (1, IY), (5, IYAW)):
+            for b, ib in ((0, IX), (1, IY), (5, IYAW)):
+                pose_flu[a][b] = float(P[ia, ib])
+        for a, ia in ((0, IV), (5, IW)):
+            for b, ib in ((0, IV), (5, IW)):
+                vel_flu[a][b] = float(P[ia, ib])
+        for k in (2, 3, 4):
+            pose_flu[k][k] = vel_flu[k][k] = big
+        vel_flu[1][1] = (
+            LATERAL_SIGMA_M_S + LATERAL_SIGMA_PER_M_S * abs(v) + LATERAL_SIGMA_PER_RAD_S * abs(w)
+        ) ** 2
+        pose_cov = upper_triangle_21(frames.covariance_frd_from_flu(pose_flu))
+        vel_cov = upper_triangle_21(frames.covariance_frd_from_flu(vel_flu))
+        yaw_frd = frames.yaw_frd_from_yaw_flu(float(x[IYAW]))
+        self.sent += 1
+        return mavlink.MAVLink_odometry_message(
+            time_usec=time_usec,
+            frame_id=mavlink.MAV_FRAME_LOCAL_FRD,
+            child_frame_id=mavlink.MAV_FRAME_BODY_FRD,
+            x=float(x[IX]),
+            y=frames.y_frd_from_y_flu(float(x[IY])),
+            z=0.0,
+            q=list(frames.quaternion_from_yaw(yaw_frd)),
+            vx=v,
+            vy=0.0,
+            vz=0.0,
+            rollspeed=0.0,
+            pitchspeed=0.0,
+            yawspeed=frames.mavlink_yaw_rate_from_omega(w),
+            pose_covariance=pose_cov,
+            velocity_covariance=vel_cov,
+            reset_counter=reset_counter,
+            estimator_type=mavlink.MAV_ESTIMATOR_TYPE_UNKNOWN,
+            quality=quality_0_100,
+        )

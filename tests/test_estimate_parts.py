@@ -1,0 +1,233 @@
+"""Unit tests of the estimate flow's collaborators, each on its own (time is an argument everywhere)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rover_bridge.estimate.clock import CLOCK_DRIFT, AutopilotClock
+from rover_bridge.estimate.diagnostics import (
+    SLIP_MIN_INTERVALS,
+    SLIP_REPORT_INTERVAL_S,
+    CalibrationReports,
+    SlipMonitor,
+)
+from rover_bridge.estimate.ekf import IW, IX, IY, IYAW, N_CAL
+from rover_bridge.estimate.gyro import GYRO_SILENT_S, GyroSelector
+from rover_bridge.estimate.publish import OdometryPublisher, quality, sigma_xy
+from rover_bridge.estimate.resets import POSE_RESET_COMMAND, ResetCounter, requested_pose
+from rover_bridge.estimate.streams import (
+    STREAM_ACK_ATTEMPTS,
+    STREAM_ACK_TIMEOUT_S,
+    Stream,
+    StreamRequests,
+)
+from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import Link
+from rover_bridge.odometry import Pose2D
+from rover_bridge.params import EstimatorParams, OdometryParams
+
+ATT = mavlink.MAVLINK_MSG_ID_ATTITUDE
+SCALED = mavlink.MAVLINK_MSG_ID_SCALED_IMU
+RAW = mavlink.MAVLINK_MSG_ID_RAW_IMU
+
+
+# ------------------------------------------------------------------------------------ clock
+
+def test_clock_maps_now_through_the_smallest_latency() -> None:
+    clock = AutopilotClock()
+    assert clock.autopilot_time_s(5.0) == 5.0  # nothing learnt: now itself
+    clock.observe(1.00, 101.03)
+    clock.observe(1.05, 101.06)  # 10 ms latency: the smallest so far
+    assert clock.offset_s == pytest.approx(100.01)
+    assert clock.autopilot_time_s(101.10) == pytest.approx(1.09)
+    assert clock.time_usec(101.10) == 1_090_000
+
+
+def test_clock_offset_creeps_up_at_most_at_the_drift_rate() -> None:
+    clock = AutopilotClock()
+    clock.observe(0.0, 100.0)  # offset 100
+    clock.observe(9.0, 110.0)  # latency 101 s: the clock runs slow; the offset may rise 0.05 s/s
+    assert clock.offset_s == pytest.approx(100.0 + CLOCK_DRIFT * 10.0)
+
+
+def test_clock_restarted_by_stamps_jumping_back() -> None:
+    clock = AutopilotClock()
+    clock.observe(50.0, 150.0)
+    assert clock.observe(49.8, 150.1) is False  # reordering, within the window
+    assert clock.observe(0.2, 151.0) is True  # a reboot
+    assert clock.offset_s == pytest.approx(150.8)
+
+
+# ------------------------------------------------------------------------------------ streams
+
+def _streams() -> StreamRequests:
+    identity = Identity(learned_system_id=1)
+    return StreamRequests([Stream("WHEEL_DISTANCE", 9000, mavlink.MAV_DATA_STREAM_EXTRA1),
+                           Stream("ATTITUDE", ATT, mavlink.MAV_DATA_STREAM_EXTRA1)], 20.0, identity,
+                          Reporter(identity))
+
+
+def _ack(result: int) -> mavlink.MAVLink_command_ack_message:
+    return mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, result, 0, 0, 1, 191)
+
+
+def test_streams_ask_one_at_a_time_and_fall_back_on_denied() -> None:
+    s = _streams()
+    first = s.on_heartbeat(0.0)
+    assert [o.msg.param1 for o in first] == [9000.0]  # one outstanding request
+    assert s.deadlines(0.0) == [STREAM_ACK_TIMEOUT_S]
+    reaction = s.handle_ack(_ack(mavlink.MAV_RESULT_DENIED), 0.1)
+    kinds = [o.msg.get_type() for o in reaction.out]
+    assert reaction.consumed and kinds == ["REQUEST_DATA_STREAM", "COMMAND_LONG"]  # fallback, then the next
+    assert reaction.out[1].msg.param1 == float(ATT)
+    assert s.counters["stream_fallbacks"] == 1 and s.counters["stream_requests"] == 2
+
+
+def test_streams_retry_then_fall_back_without_an_ack() -> None:
+    s = _streams()
+    s.on_heartbeat(0.0)
+    t = 0.0
+    for _ in range(STREAM_ACK_ATTEMPTS - 1):
+        t += STREAM_ACK_TIMEOUT_S
+        assert [o.msg.get_type() for o in s.pump(t)] == ["COMMAND_LONG"]
+    t += STREAM_ACK_TIMEOUT_S
+    assert [o.msg.get_type() for o in s.pump(t)] == ["REQUEST_DATA_STREAM", "COMMAND_LONG"]
+
+
+def test_streams_someone_elses_ack_is_not_ours() -> None:
+    s = _streams()
+    s.on_heartbeat(0.0)
+    other = mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 0, 0, 255, 190)
+    assert not s.handle_ack(other, 0.1).consumed
+
+
+def test_streams_a_heartbeat_gap_restarts_the_requests_and_slow_streams_are_asked_again() -> None:
+    s = _streams()
+    s.on_heartbeat(0.0)
+    s.handle_ack(_ack(mavlink.MAV_RESULT_ACCEPTED), 0.1)
+    s.handle_ack(_ack(mavlink.MAV_RESULT_ACCEPTED), 0.2)
+    assert s.on_heartbeat(1.0) == []  # no gap
+    for i in range(20):  # 20 arrivals over the 5 s window after the 2 s grace: 4 Hz, far below 14 Hz
+        s.arrival("WHEEL_DISTANCE", 2.2 + i * 0.25)
+        s.arrival("ATTITUDE", 2.2 + i * 0.25)
+    out = s.check_rates(7.2)
+    assert [o.msg.get_type() for o in out].count("REQUEST_DATA_STREAM") == 2
+    assert s.counters["stream_slow"] == 2
+    assert [o.msg.get_type() for o in s.on_heartbeat(20.0)] == ["COMMAND_LONG"]  # after a gap: again
+    assert s.counters["stream_restarts"] == 2
+
+
+# ------------------------------------------------------------------------------------ gyro
+
+def test_gyro_auto_prefers_attitude_and_decodes_only_what_it_would_switch_to() -> None:
+    g = GyroSelector(EstimatorParams(gyro_source="auto"))
+    assert g.reads == {ATT, SCALED, RAW}
+    assert g.accept_source("raw_imu", 0.0)  # nothing else yet
+    assert g.reads == {ATT, SCALED, RAW}
+    assert g.accept_source("attitude", 0.1)  # higher priority: switch
+    assert g.source == "attitude" and g.switches == 1 and g.reads == {ATT}
+    assert not g.accept_source("raw_imu", 0.2)
+    g.update_reads(0.1 + GYRO_SILENT_S + 0.01)  # attitude fell silent: read everything again
+    assert g.reads == {ATT, SCALED, RAW}
+    assert g.accept_source("raw_imu", 0.1 + GYRO_SILENT_S + 0.02)
+
+
+def test_gyro_fixed_source_and_stale_stamps() -> None:
+    g = GyroSelector(EstimatorParams(gyro_source="scaled_imu"))
+    assert g.reads == {SCALED}
+    assert not g.accept_source("attitude", 0.0)
+    g.fused("scaled_imu", 10.0)
+    assert g.is_stale("scaled_imu", 10.0) and g.is_stale("scaled_imu", 9.6)
+    assert not g.is_stale("scaled_imu", 10.01) and not g.is_stale("scaled_imu", 1.0)  # newer; a reboot
+
+
+# ------------------------------------------------------------------------------------ publish
+
+def _state() -> tuple[np.ndarray, np.ndarray]:
+    x = np.zeros(N_CAL)
+    x[IX], x[IY], x[IYAW], x[IW] = 1.0, 2.0, 0.5, 0.3
+    P = np.diag([0.01, 0.04, 0.001, 0.1, 0.2, 1e-4, 1e-3, 1e-3])  # noqa: N806
+    return x, P
+
+
+def test_publisher_keeps_its_grid_and_restarts_it_after_a_stall() -> None:
+    pub = OdometryPublisher(OdometryParams(rate_hz=10.0))
+    assert pub.due(0.0) and not pub.due(0.05) and pub.due(0.1001)
+    assert pub.next_s == pytest.approx(0.2)  # on the grid, not 0.2001
+    assert pub.due(5.0) and pub.next_s == pytest.approx(5.1)  # a stall: a new grid, no burst
+    assert not OdometryPublisher(OdometryParams(targets="none")).due(0.0)
+    assert OdometryPublisher(OdometryParams(targets="both")).links == (Link.GCS, Link.AUTOPILOT)
+
+
+def test_publisher_packs_frd_signs_and_the_unobserved_variance() -> None:
+    x, P = _state()  # noqa: N806
+    msg = OdometryPublisher(OdometryParams(unobserved_variance=7.0)).message(x, P, 123, 4, 55)
+    assert (msg.time_usec, msg.reset_counter, msg.quality) == (123, 4, 55)
+    assert msg.y == -2.0 and msg.yawspeed == pytest.approx(-0.3)
+    assert msg.pose_covariance[0] == pytest.approx(0.01) and msg.pose_covariance[6] == pytest.approx(0.04)
+    assert msg.pose_covariance[11] == 7.0  # z, unobserved
+    assert msg.frame_id == mavlink.MAV_FRAME_LOCAL_FRD and msg.child_frame_id == mavlink.MAV_FRAME_BODY_FRD
+
+
+def test_quality_falls_with_uncertainty_and_is_zero_without_wheels() -> None:
+    _, P = _state()  # noqa: N806
+    assert sigma_xy(P) == pytest.approx(0.2)
+    good = quality(P / 100.0, True)
+    assert 1 <= quality(P, True) < good <= 100
+    assert quality(P, False) == 0
+
+
+# ------------------------------------------------------------------------------------ resets
+
+def _reset_cmd(x: float, y: float, yaw_deg: float) -> mavlink.MAVLink_command_long_message:
+    return mavlink.MAVLink_command_long_message(1, 191, POSE_RESET_COMMAND, 0, x, y, yaw_deg, 0, 0, 0, 0)
+
+
+def test_requested_pose_converts_frd_keeps_nan_coordinates_and_denies_garbage() -> None:
+    current = Pose2D(5.0, 6.0, 0.1)
+    pose = requested_pose(_reset_cmd(1.0, 2.0, 90.0), current)
+    assert pose == Pose2D(1.0, -2.0, pytest.approx(-math.pi / 2))
+    assert requested_pose(_reset_cmd(math.nan, 2.0, math.nan), current) == Pose2D(5.0, -2.0, 0.1)
+    assert requested_pose(_reset_cmd(1e7, 0.0, 0.0), current) is None
+    assert requested_pose(_reset_cmd(0.0, 0.0, 720.0), current) is None
+    assert requested_pose(_reset_cmd(math.inf, 0.0, 0.0), current) is None
+
+
+def test_reset_counter_rises_on_resets_and_reboots_and_wraps() -> None:
+    identity = Identity(learned_system_id=1)
+    r = ResetCounter(Reporter(identity))
+    out = r.reboot("time back 5 s", 0.0)
+    assert r.value == 1 and "reboot" in out[0].msg.text
+    r.value = 255
+    r.pose_reset(Pose2D(), 10.0)
+    assert r.value == 0 and r.counters == {"reboots": 1, "pose_resets": 1, "pose_resets_denied": 0}
+
+
+# ------------------------------------------------------------------------------------ reports
+
+def test_slip_needs_consecutive_intervals_and_reports_rate_limited() -> None:
+    m = SlipMonitor(Reporter(Identity(learned_system_id=1)))
+    texts = []
+    for i in range(SLIP_MIN_INTERVALS - 1):
+        texts += m.interval(True, i * 0.05)
+    assert m.count == 0 and texts == [] and not m.slipping
+    assert m.interval(True, 1.0) and m.count == 1 and m.slipping
+    assert m.interval(True, 1.05) == [] and m.count == 2  # counted, not reported again so soon
+    assert m.interval(False, 1.1) == [] and not m.slipping
+    m.interval(True, 1.0 + SLIP_REPORT_INTERVAL_S)
+    assert m.interval(True, 1.05 + SLIP_REPORT_INTERVAL_S)
+
+
+def test_calibration_reports_only_when_enabled_and_every_interval() -> None:
+    reporter = Reporter(Identity(learned_system_id=1))
+    assert CalibrationReports(reporter, False).tick(100.0, True, 0.3, 0.05, 0.05) == []
+    c = CalibrationReports(reporter, True)
+    assert c.tick(0.0, False, 0.3, 0.05, 0.05) == [] and c.next_s is None  # no wheels yet
+    assert c.tick(1.0, True, 0.3, 0.05, 0.05) == [] and c.next_s == 31.0
+    out = c.tick(31.0, True, 0.3057, 0.0499, 0.0509)
+    assert out and out[0].msg.text == "cal track 0.3057 r 0.0499/0.0509"
