@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import pytest
 
 from rover_bridge.app.composition import BridgeCore
-from rover_bridge.command.core import CommandCore, State
+from rover_bridge.command.core import CommandCore, CommandState
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.identity import Identity
 from rover_bridge.mavlink.report import Reporter
@@ -126,7 +126,7 @@ class Rig:
 Sent = Sequence[tuple[float, Outgoing]] | Sequence[Outgoing]
 
 
-def state(rig: Rig) -> State:
+def state(rig: Rig) -> CommandState:
     return rig.core.state
 
 
@@ -165,7 +165,7 @@ def test_nothing_is_sent_before_the_vehicle_is_known_and_requests_are_forwarded(
     reaction = rig.local(2.0, vx=0.5)
     assert reaction == Reaction(consumed=False, out=())
     assert rig.core.counters["forwarded.vehicle_unknown"] == 1
-    assert state(rig) is State.WAITING
+    assert state(rig) is CommandState.WAITING
 
 
 def test_only_neutral_at_the_refresh_rate_before_the_first_request() -> None:
@@ -178,7 +178,7 @@ def test_only_neutral_at_the_refresh_rate_before_the_first_request() -> None:
     assert set(overrides(out)) == {(1500, 1500)}
     assert len(ticks) == 40  # 0.05, 0.10, ... 2.00
     assert all(b - a == pytest.approx(PERIOD_S) for a, b in itertools.pairwise(ticks))
-    assert state(rig) is State.IDLE
+    assert state(rig) is CommandState.IDLE
 
 
 def test_late_ticks_do_not_slow_the_refresh_rate() -> None:
@@ -209,7 +209,7 @@ def test_body_request_acted_on_at_once_with_exact_pwm(frame: int) -> None:
     assert reaction.consumed
     assert overrides(reaction.out) == [(1760, 1717)]
     assert texts(reaction.out) == ["RB: active, driving"]
-    assert state(rig) is State.ACTIVE
+    assert state(rig) is CommandState.ACTIVE
     assert rig.core.last_wheel_pwm is not None
     assert (rig.core.last_wheel_pwm.left_us, rig.core.last_wheel_pwm.right_us) == (1760, 1717)
     assert rig.core.commanded.v_m_s == pytest.approx(0.5)
@@ -290,9 +290,9 @@ def test_stale_attitude_during_motion_brakes() -> None:
     while t < 0.9:  # keep the request fresh, let the yaw go stale (attitude_timeout_s = 1.0)
         t += 0.1
         rig.local(t, frame=1, mask=VEL_ONLY, vy=0.5)
-    assert state(rig) is State.ACTIVE
+    assert state(rig) is CommandState.ACTIVE
     rig.local(1.01, frame=1, mask=VEL_ONLY, vy=0.5)
-    assert state(rig) is State.BRAKING
+    assert state(rig) is CommandState.BRAKING
 
 
 def test_manual_control_scaling_and_sign() -> None:
@@ -334,7 +334,7 @@ def test_non_finite_requests_are_rejected_counted_and_only_neutral_reaches_the_w
     assert set(overrides(rig.sent)) == {(1500, 1500)}
     assert overrides(out)
     assert rig.core.counters["rejected.non_finite"] == 3
-    assert state(rig) is State.IDLE
+    assert state(rig) is CommandState.IDLE
 
 
 @pytest.mark.parametrize(("mask", "reason"),
@@ -363,7 +363,7 @@ def test_manual_control_out_of_range_rejected() -> None:
     rig = ready()
     assert rig.manual(0.01, 1001, 0).consumed
     assert rig.core.counters["rejected.manual_out_of_range"] == 1
-    assert state(rig) is State.IDLE
+    assert state(rig) is CommandState.IDLE
 
 
 # ------------------------------------------------------------------ target filtering
@@ -415,7 +415,7 @@ def test_outputs_refreshed_at_rate_while_streaming() -> None:
     stamps = [s for s, o in rig.sent if o.msg.get_type() == "RC_CHANNELS_OVERRIDE"]
     gaps = [b - a for a, b in itertools.pairwise(stamps)]
     assert max(gaps) <= PERIOD_S + 1e-9
-    assert state(rig) is State.ACTIVE
+    assert state(rig) is CommandState.ACTIVE
 
 
 def test_timeout_ramps_down_monotonically_to_exactly_neutral() -> None:
@@ -437,7 +437,7 @@ def test_timeout_ramps_down_monotonically_to_exactly_neutral() -> None:
     assert all(pwm == (1500, 1500) for s, pwm in stamped if s >= deadline)
     assert any(pwm[0] > 1500 for s, pwm in stamped if s > last_request_s + 0.5)  # it did ramp, not jump
     assert texts(out) == ["RB: no request, braking to a stop", "RB: idle, wheels neutral"]
-    assert state(rig) is State.IDLE
+    assert state(rig) is CommandState.IDLE
     assert rig.core.counters["state.braking"] == 1
 
 
@@ -457,11 +457,11 @@ def test_link_loss_goes_neutral_and_only_a_fresh_request_resumes() -> None:
     for t in [k / 10 for k in range(1, 30)] + [2.95]:  # the autopilot's heartbeat at 0.0 is its last one
         rig.local(t, vx=0.5, mask=VEL_ONLY)
         rig.core.tick(t)
-    assert state(rig) is State.ACTIVE
+    assert state(rig) is CommandState.ACTIVE
     lost = rig.core.tick(3.0)
     assert overrides(lost) == [(1500, 1500)]
     assert texts(lost) == ["RB: autopilot heartbeat lost, neutral"]
-    assert state(rig) is State.LINK_LOST
+    assert state(rig) is CommandState.LINK_LOST
     during = rig.local(3.05, vx=0.5, mask=VEL_ONLY)
     assert during.consumed and overrides(during.out) == []
     assert rig.core.counters["dropped.link_lost"] == 1
@@ -474,7 +474,7 @@ def test_link_loss_goes_neutral_and_only_a_fresh_request_resumes() -> None:
 
 def test_disarmed_holds_neutral_and_arming_needs_a_fresh_request() -> None:
     rig = ready(armed=False)
-    assert state(rig) is State.DISARMED
+    assert state(rig) is CommandState.DISARMED
     reaction = rig.local(0.01, vx=0.5, mask=VEL_ONLY)
     assert reaction.consumed and overrides(reaction.out) == []
     assert rig.core.counters["dropped.disarmed"] == 1
@@ -501,7 +501,7 @@ def test_heartbeats_of_other_systems_do_not_keep_the_link() -> None:
         mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3))
     rig.feed(Link.AUTOPILOT, gcs_hb, 2.9)
     rig.core.tick(3.0)
-    assert state(rig) is State.LINK_LOST
+    assert state(rig) is CommandState.LINK_LOST
 
 
 # ------------------------------------------------------------------ servo mode
@@ -525,7 +525,7 @@ def test_servo_mode_commands_each_wheel_and_tracks_acks() -> None:
     assert rig.core.counters["servo.accepted"] == 1
     # an ack for somebody else's command is not ours
     assert rig.ack(0.02, mavlink.MAV_RESULT_FAILED, target=(255, 190)).consumed is False
-    assert state(rig) is State.ACTIVE
+    assert state(rig) is CommandState.ACTIVE
 
 
 def test_servo_refusal_is_reported_and_stops_the_wheels() -> None:
@@ -535,11 +535,11 @@ def test_servo_refusal_is_reported_and_stops_the_wheels() -> None:
     assert refused.consumed
     assert texts(refused.out) == ["RB: DO_SET_SERVO result 4", "RB: DO_SET_SERVO refused, neutral"]
     assert servo_cmds(refused.out) == [(1.0, 1500.0), (3.0, 1500.0)]
-    assert state(rig) is State.REFUSED
+    assert state(rig) is CommandState.REFUSED
     assert rig.core.counters["servo.refused"] == 1
     out = rig.run_until(0.5, 0.02)
     assert set(servo_cmds([o for _, o in out])) == {(1.0, 1500.0), (3.0, 1500.0)}
-    assert state(rig) is State.REFUSED
+    assert state(rig) is CommandState.REFUSED
     assert servo_cmds(rig.local(0.5, vx=0.5, yaw_rate=0.3).out) == [(1.0, 1760.0), (3.0, 1717.0)]
 
 

@@ -63,7 +63,7 @@ MAX_SAID = 1024  # (report, source) pairs remembered for "say once"
 UNAUTHORISED = "unauthorised"
 
 
-class State(enum.Enum):
+class CommandState(enum.Enum):
     WAITING = "waiting"  # no autopilot heartbeat yet
     IDLE = "idle"  # no request: neutral
     ACTIVE = "active"  # following a fresh request
@@ -75,16 +75,16 @@ class State(enum.Enum):
 
 
 STATE_TEXT = {
-    State.IDLE: (mavlink.MAV_SEVERITY_INFO, "RB: idle, wheels neutral"),
-    State.ACTIVE: (mavlink.MAV_SEVERITY_INFO, "RB: active, driving"),
-    State.BRAKING: (mavlink.MAV_SEVERITY_WARNING, "RB: no request, braking to a stop"),
-    State.LINK_LOST: (mavlink.MAV_SEVERITY_CRITICAL, "RB: autopilot heartbeat lost, neutral"),
-    State.DISARMED: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot disarmed, neutral"),
-    State.REFUSED: (mavlink.MAV_SEVERITY_ERROR, "RB: DO_SET_SERVO refused, neutral"),
-    State.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, overrides released"),
+    CommandState.IDLE: (mavlink.MAV_SEVERITY_INFO, "RB: idle, wheels neutral"),
+    CommandState.ACTIVE: (mavlink.MAV_SEVERITY_INFO, "RB: active, driving"),
+    CommandState.BRAKING: (mavlink.MAV_SEVERITY_WARNING, "RB: no request, braking to a stop"),
+    CommandState.LINK_LOST: (mavlink.MAV_SEVERITY_CRITICAL, "RB: autopilot heartbeat lost, neutral"),
+    CommandState.DISARMED: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot disarmed, neutral"),
+    CommandState.REFUSED: (mavlink.MAV_SEVERITY_ERROR, "RB: DO_SET_SERVO refused, neutral"),
+    CommandState.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, overrides released"),
 }
 
-_DRIVING = (State.ACTIVE, State.BRAKING)
+_DRIVING = (CommandState.ACTIVE, CommandState.BRAKING)
 _ACK_OK = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
 
 
@@ -99,7 +99,7 @@ class CommandCore:
         self.outputs = OutputMap.from_profile(profile)
         self.limiter = TwistLimiter(TwistLimits.from_params(profile.limits))
         self.period_s = 1.0 / profile.command.rate_hz
-        self.state = State.WAITING
+        self.state = CommandState.WAITING
         self.counters: dict[str, int] = {}
         self.last_wheel_pwm: WheelPwm | None = None
         self.request: Request | None = None  # headings already made absolute
@@ -127,7 +127,7 @@ class CommandCore:
     AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK"})
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
-        if self.state is State.STOPPED:
+        if self.state is CommandState.STOPPED:
             return NOTHING
         msg = inc.msg
         kind = msg.get_type()
@@ -144,24 +144,24 @@ class CommandCore:
         return NOTHING
 
     def tick(self, now_s: float) -> list[Outgoing]:
-        if self.state is State.STOPPED:
+        if self.state is CommandState.STOPPED:
             return []
         due = self._next_output_s is None or now_s >= self._next_output_s
         return self._advance(now_s, force_output=due)
 
     def next_deadline_s(self, now_s: float) -> float:
-        if self.state is State.STOPPED or self.identity.vehicle_system_id is None:
+        if self.state is CommandState.STOPPED or self.identity.vehicle_system_id is None:
             return now_s + self.period_s  # nothing can be sent yet; look again a period later
         deadlines = [now_s if self._next_output_s is None else self._next_output_s]
-        if self.state is State.ACTIVE and self._request_s is not None:
+        if self.state is CommandState.ACTIVE and self._request_s is not None:
             deadlines.append(self._request_s + self.profile.command.setpoint_timeout_s)
-        if self._last_heartbeat_s is not None and self.state is not State.LINK_LOST:
+        if self._last_heartbeat_s is not None and self.state is not CommandState.LINK_LOST:
             deadlines.append(self._last_heartbeat_s + self.profile.safety.heartbeat_timeout_s)
         return min(deadlines)
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Neutral, then release (servo mode: trim on both outputs); nothing is sent afterwards."""
-        if self.state is State.STOPPED:
+        if self.state is CommandState.STOPPED:
             return []
         self._drop_request()
         vehicle = self.identity.vehicle_system_id
@@ -173,7 +173,7 @@ class CommandCore:
                 msgs += self.outputs.release(*target)
             out += [self._to_autopilot(m) for m in msgs]
             self.last_wheel_pwm = self.outputs.neutral
-        out += self._set_state(State.STOPPED, now_s)
+        out += self._set_state(CommandState.STOPPED, now_s)
         return out
 
     # ----------------------------------------------------------------- hooks
@@ -246,10 +246,10 @@ class CommandCore:
         if isinstance(decoded, Rejected):
             return self._reject(decoded.reason, source, now_s)
         out = self._advance(now_s, force_output=False)  # bring link / armed / timeout state up to date
-        if self.state in (State.WAITING, State.LINK_LOST):
+        if self.state in (CommandState.WAITING, CommandState.LINK_LOST):
             self._count("dropped.link_lost")
             return Reaction(consumed=True, out=tuple(out))
-        if self.state is State.DISARMED:
+        if self.state is CommandState.DISARMED:
             self._count("dropped.disarmed")
             return Reaction(consumed=True, out=tuple(out))
         request: Request = decoded
@@ -283,22 +283,22 @@ class CommandCore:
             out += self._output(now_s)
         return out
 
-    def _evaluate(self, now_s: float) -> State:
+    def _evaluate(self, now_s: float) -> CommandState:
         if self._last_heartbeat_s is None:
-            return State.WAITING
+            return CommandState.WAITING
         # Same expression as next_deadline_s: `now - last >= timeout` can round below the timeout at
         # exactly that deadline, and the shell would wake again and again for a tick that does nothing.
         if now_s >= self._last_heartbeat_s + self.profile.safety.heartbeat_timeout_s:
             self._drop_request()
-            return State.LINK_LOST
+            return CommandState.LINK_LOST
         if self.profile.safety.require_armed and not self._armed:
             self._drop_request()
-            return State.DISARMED
+            return CommandState.DISARMED
         if self.request is None or self._request_s is None:
-            return State.REFUSED if self._refused else State.IDLE
+            return CommandState.REFUSED if self._refused else CommandState.IDLE
         if now_s >= self._request_s + self.profile.command.setpoint_timeout_s or self._target(now_s) is None:
-            return State.BRAKING
-        return State.ACTIVE
+            return CommandState.BRAKING
+        return CommandState.ACTIVE
 
     def _target(self, now_s: float) -> Twist2D | None:
         """The twist the current request asks for now; None if it cannot be followed (no fresh yaw)."""
@@ -322,7 +322,7 @@ class CommandCore:
         vehicle = self.identity.vehicle_system_id
         if vehicle is None:
             return []
-        target = self._target(now_s) if self.state is State.ACTIVE else None
+        target = self._target(now_s) if self.state is CommandState.ACTIVE else None
         last = self._last_output_s
         dt_s = self.period_s if last is None else min(self.period_s, now_s - last)
         if self.state in _DRIVING:
@@ -344,7 +344,7 @@ class CommandCore:
         self._next_output_s = nxt + self.period_s if on_grid and nxt is not None else now_s + self.period_s
         self._count("outputs.sent")
         out = [self._to_autopilot(m) for m in msgs]
-        if self.state is State.BRAKING and self.limiter.current == Twist2D():
+        if self.state is CommandState.BRAKING and self.limiter.current == Twist2D():
             # Stopped: the neutral just built is the last braking output; from now on IDLE.
             self._drop_request()
             out += self._set_state(self._evaluate(now_s), now_s)
@@ -354,7 +354,7 @@ class CommandCore:
         self.request, self._request_s = None, None
         self.limiter.reset(Twist2D())
 
-    def _set_state(self, new: State, now_s: float) -> list[Outgoing]:
+    def _set_state(self, new: CommandState, now_s: float) -> list[Outgoing]:
         if new is self.state:
             return []
         old, self.state = self.state, new
