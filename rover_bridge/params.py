@@ -155,6 +155,15 @@ class SafetyParams:
     attitude_timeout_s: float = _p(1.0, "Earth-frame (heading) requests need an ATTITUDE yaw younger than "
                                    "this; a stale yaw brakes the rover like a request timeout.",
                                    unit="s", lo=0.05, hi=10.0)
+    stop_modes: tuple[int, ...] = _p(
+        (4,), "Autopilot modes (HEARTBEAT custom_mode) in which the bridge brakes to a stop, drops the request "
+        "and holds neutral; it drives again only on a fresh request after the mode has changed. ArduPilot "
+        "Rover: 4 = HOLD (what a GCS's Hold, Pause and Stop buttons select); PX4 Hold is 50593792. [] to "
+        "disable.", lo=0, hi=4294967295)
+    stop_confirm_timeout_s: float = _p(
+        0.3, "On exit, after neutral and release, wait at most this long for the autopilot's proof that it "
+        "processed them (its answer to a TIMESYNC sent after them; resent every 0.1 s), then close the link.",
+        unit="s", lo=0.05, hi=5.0)
 
 
 @dataclass(frozen=True, slots=True)

@@ -35,11 +35,19 @@ Behaviour copied from ArduPilot (read in its source; behaviour only, no code):
 - WHEEL_DISTANCE (Rover/GCS_MAVLink_Rover.cpp, libraries/AP_WheelEncoder): time_usec = time
   since boot, cumulative metres since boot = counts * 2*pi*WENCn_RADIUS / WENCn_CPR.
 
-Differences from ArduPilot, on purpose: the emulator supports only the modes MANUAL (0),
-HOLD (4) and GUIDED (15) and does no navigation in GUIDED (motor-function outputs stay at
-trim); SCALED_IMU is sent in RAW_SENSORS beside RAW_IMU; the ground truth is sent as SIMSTATE
-and LOCAL_POSITION_NED; with ``passthrough_when_disarmed`` False (the default) passthrough
-outputs sit at trim while disarmed (real ArduPilot passes them through: set it True for that).
+- Modes (Rover/mode.h): every Rover custom_mode is accepted and reported in HEARTBEAT; RC
+  passthrough outputs (51..66) follow the RC input in every mode (SRV_Channel::output_ch has no
+  mode check), so HOLD stops only the motor-function outputs.
+- TIMESYNC (GCS_Common.cpp handle_timesync): tc1 == 0 is answered at once, ts1 echoed.
+- Stream links (SITL's TCP UART, AP_HAL_SITL/UARTDriver.cpp): bytes are read between main loops and
+  parsed in the next loop's update_receive; when the client closes, what was not parsed yet is never
+  seen as that client's (the emulator drops it), so a stop sent just before a close is lost.
+
+Differences from ArduPilot, on purpose: the emulator flies only MANUAL's skid mix and does no
+navigation in GUIDED, AUTO or any other mode (motor-function outputs stay at trim); SCALED_IMU is
+sent in RAW_SENSORS beside RAW_IMU; the ground truth is sent as SIMSTATE and LOCAL_POSITION_NED;
+with ``passthrough_when_disarmed`` False (the default) passthrough outputs sit at trim while
+disarmed (real ArduPilot passes them through: set it True for that).
 """
 
 from __future__ import annotations
@@ -51,10 +59,12 @@ from sitl.config import VehicleConfig
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.physics import PhysicsState, encoder_counts, pwm_to_command
 
+# Rover/mode.h Mode::Number: the custom_mode values Rover reports (there are no modes 2, 13, 14).
 MODE_MANUAL = 0
 MODE_HOLD = 4
 MODE_GUIDED = 15
-MODE_NAMES = {MODE_MANUAL: "MANUAL", MODE_HOLD: "HOLD", MODE_GUIDED: "GUIDED"}
+MODE_NAMES = {0: "MANUAL", 1: "ACRO", 3: "STEERING", 4: "HOLD", 5: "LOITER", 6: "FOLLOW", 7: "SIMPLE",
+              8: "DOCK", 9: "CIRCLE", 10: "AUTO", 11: "RTL", 12: "SMART_RTL", 15: "GUIDED", 16: "INITIALISING"}
 
 FUNC_NONE = 0
 FUNC_MANUAL = 1
@@ -412,6 +422,11 @@ class Autopilot:
             self.received_odometry.append(ReceivedMessage(now_us / 1e6, msg))
         elif msg_id == _P.MAVLINK_MSG_ID_HEARTBEAT:
             self._count("rx_heartbeats")
+        elif msg_id == _P.MAVLINK_MSG_ID_TIMESYNC and msg.tc1 == 0:
+            # GCS_Common.cpp handle_timesync: a request (tc1 == 0) is answered while parsing, ts1 echoed,
+            # so its reply proves every byte before it on this link was handled.
+            self._count("timesync_replies")
+            self.outbox.append(self.mav.timesync_encode(max(1, now_us * 1000), msg.ts1))
 
     def _handle_override(self, msg: MAVLinkMessage, now_us: int) -> None:
         if msg.get_srcSystem() != int(self.param("MAV_GCS_SYSID")):
@@ -634,7 +649,8 @@ class Autopilot:
                 base |= _P.MAV_MODE_FLAG_GUIDED_ENABLED | _P.MAV_MODE_FLAG_STABILIZE_ENABLED
             if self.armed:
                 base |= _P.MAV_MODE_FLAG_SAFETY_ARMED
-            status = _P.MAV_STATE_ACTIVE if self.armed else _P.MAV_STATE_STANDBY
+            # GCS_MAVLINK_Rover::vehicle_system_status: armed and not holding is ACTIVE.
+            status = _P.MAV_STATE_ACTIVE if self.armed and self.mode != MODE_HOLD else _P.MAV_STATE_STANDBY
             return m.heartbeat_encode(
                 _P.MAV_TYPE_GROUND_ROVER, _P.MAV_AUTOPILOT_ARDUPILOTMEGA, base, self.mode, status, 3
             )

@@ -1,12 +1,14 @@
 """The in-process facade: physics + autopilot + scenario + faults + one MAVLink endpoint.
 
-Lockstep: ``step(dt_s)`` (1) fires due scenario events, (2) reads every datagram that has
-already arrived (non-blocking) and hands the due ones, through the inbound fault model, to
-the autopilot, (3) advances physics by ``dt_s`` of simulated time in substeps of at most
-``vehicle.physics_dt_s``, recomputing the servo outputs before each substep, and (4) sends the
-replies and every stream message that is due, through the outbound fault model. Simulated
-time is kept in integer microseconds, so a run is a pure function of the seed and the input
-sequence. ``run_realtime`` calls ``step`` on a wall clock for the CLI.
+Lockstep: ``step(dt_s)`` (1) fires due scenario events, (2) reads every datagram that has already
+arrived (non-blocking) and hands the due ones, through the inbound fault model, to the autopilot
+(bytes of a stream link, TCP, are handed on one step later, and lost if the client closes before
+then, as ArduPilot's SITL serial port does), (3) advances physics by ``dt_s`` of simulated time in
+substeps of at most ``vehicle.physics_dt_s``, recomputing the servo outputs before each substep, and
+(4) sends the replies and every stream message that is due, through the outbound fault model.
+Simulated time is kept in integer microseconds, so a run is a pure function of the seed and the
+input sequence.
+``run_realtime`` calls ``step`` on a wall clock for the CLI.
 """
 
 from __future__ import annotations
@@ -70,11 +72,13 @@ class Emulator:
         self._now_us = 0
         self._scenario_reboots_done = 0
         self._endpoint: Endpoint | None = None
+        self._stream_pending: list[bytes] = []  # read from a stream link, parsed in the next step
         self._counters: dict[str, int] = {
             "rx_bad_data": 0,
             "rx_dropped_silence": 0,
             "tx_dropped_silence": 0,
             "tx_messages": 0,
+            "rx_lost_on_close_bytes": 0,
         }
         self.sent_log: list[tuple[float, MAVLinkMessage]] | None = [] if record_sent else None
 
@@ -161,8 +165,22 @@ class Emulator:
             self.reboot()
 
     def _receive(self, now_us: int) -> None:
-        if self._endpoint is not None:
-            for data in self._endpoint.recv_all():
+        ep = self._endpoint
+        if ep is not None:
+            before = ep.disconnects
+            chunks = ep.recv_all()
+            if ep.is_stream:
+                # SITL's TCP UART (AP_HAL_SITL/UARTDriver.cpp): bytes read between two main loops are
+                # parsed by the next loop's update_receive. If the client has closed by then they are
+                # never parsed as its own (_available() is 0 while disconnected): a stop sent just
+                # before a close is lost. So what is read in one step is parsed in the next, unless
+                # the client went away in between.
+                pending, self._stream_pending = self._stream_pending, chunks
+                if ep.disconnects != before:
+                    self._counters["rx_lost_on_close_bytes"] += sum(len(c) for c in pending)
+                    pending = []
+                chunks = pending
+            for data in chunks:
                 self._link_in.push(data, now_us / 1e6)
         silent = self.scenario.link_silent(now_us / 1e6)
         for data in self._link_in.pop_due(now_us / 1e6):
@@ -316,6 +334,7 @@ class Emulator:
             out[f"fault_{name}_reordered"] = c.reordered
         if self._endpoint is not None:
             out["tx_send_errors"] = self._endpoint.send_errors
+            out["rx_lost_on_close_bytes"] += self._endpoint.lost_on_close_bytes
         return out
 
     def get_param(self, name: str) -> float:

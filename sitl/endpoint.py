@@ -7,7 +7,9 @@ and ``tcp:HOST:PORT`` (connect out). Port 0 binds an ephemeral port (see ``local
 The sockets are written here rather than taken from ``mavutil.mavlink_connection`` because
 pymavlink binds UDP with SO_REUSEADDR, which would hide a busy port instead of reporting it,
 and because fault injection needs each datagram on its own. Everything is non-blocking:
-``recv_all`` returns what has arrived and never waits.
+``recv_all`` returns what has arrived and never waits. A stream client's bytes that arrive in the
+same read as its close are dropped (counted in ``lost_on_close_bytes``), as ArduPilot never parses
+them as that client's.
 """
 
 from __future__ import annotations
@@ -78,6 +80,8 @@ class Endpoint:
         self._peer: tuple[str, int] | None = None
         self._client: socket.socket | None = None
         self.send_errors = 0
+        self.disconnects = 0  # stream clients that closed (EOF or reset) or were replaced
+        self.lost_on_close_bytes = 0  # a closing stream client's bytes that were never parsed
         a = self.address
         if a.kind in ("udpin", "udpout"):
             self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -141,7 +145,11 @@ class Endpoint:
                 break
             except OSError:
                 data = b""
-            if not data:  # peer closed
+            if not data:  # peer closed (FIN, or a reset)
+                # ArduPilot reads a stream between main loops and parses it in the next one; the bytes
+                # of a client that is gone by then are never parsed as its own (see sitl/autopilot.py).
+                self.lost_on_close_bytes += sum(len(c) for c in out)
+                out = []
                 self._drop_client()
                 break
             out.append(data)
@@ -159,8 +167,10 @@ class Endpoint:
             self._client = conn
 
     def _drop_client(self) -> None:
-        if self._client is not None and self._client is not self._sock:
-            self._client.close()
+        if self._client is not None:
+            self.disconnects += 1
+            if self._client is not self._sock:
+                self._client.close()
         self._client = None
 
     def send(self, data: bytes) -> None:

@@ -110,10 +110,18 @@ class Lockstep:
             if after_step is not None:
                 after_step()
 
-    def close(self) -> None:
-        self.runner.stop_safely(self.t_s)
+    def stop(self, max_s: float = 1.0) -> None:
+        """The shell's exit path in lockstep: neutral, release and probe, then steps until the core has
+        the autopilot's answer (or its timeout), then a few more so the last datagrams land."""
+        self.runner.begin_stop(self.t_s)
+        end = self.t_s + max_s
+        while not self.core.stop_settled and self.t_s < end:
+            self.step()
         for _ in range(5):
             self.step()
+
+    def close(self) -> None:
+        self.stop()
         self.runner.close()
         self.gcs.close()
         self.emu.close()

@@ -68,12 +68,12 @@ class Rig:
         self.sent += [(t, o) for o in reaction.out]
         return reaction
 
-    def heartbeat(self, t: float, armed: bool = True) -> Reaction:
+    def heartbeat(self, t: float, armed: bool = True, mode: int = 15) -> Reaction:
         base_mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
         if armed:
             base_mode |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         msg = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GROUND_ROVER,
-                                                mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode, 15,
+                                                mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode, mode,
                                                 mavlink.MAV_STATE_ACTIVE, 3)
         return self.feed(Link.AUTOPILOT, self.wire(self.ap, msg), t)
 
@@ -548,7 +548,7 @@ def test_servo_shutdown_sends_trim_on_both_outputs() -> None:
     rig.local(0.01, vx=0.5, mask=VEL_ONLY)
     out = rig.core.shutdown(0.02)
     assert servo_cmds(out) == [(1.0, 1500.0), (3.0, 1500.0)]
-    assert [o.msg.get_type() for o in out] == ["COMMAND_LONG", "COMMAND_LONG", "STATUSTEXT"]
+    assert [o.msg.get_type() for o in out] == ["COMMAND_LONG", "COMMAND_LONG", "TIMESYNC", "STATUSTEXT"]
 
 
 # ------------------------------------------------------------------ shutdown
@@ -558,14 +558,53 @@ def test_shutdown_sends_neutral_then_release_on_ch1_8() -> None:
     rig = ready()
     rig.local(0.01, vx=0.5, mask=VEL_ONLY)
     out = rig.core.shutdown(0.02)
-    assert [o.msg.get_type() for o in out] == ["RC_CHANNELS_OVERRIDE", "RC_CHANNELS_OVERRIDE", "STATUSTEXT"]
+    assert [o.msg.get_type() for o in out] == ["RC_CHANNELS_OVERRIDE", "RC_CHANNELS_OVERRIDE", "TIMESYNC",
+                                              "STATUSTEXT"]
     chans = [[int(getattr(o.msg, f"chan{i}_raw")) for i in range(1, 19)] for o in out[:2]]
     assert chans[0] == [1500, IGNORE, 1500, IGNORE, IGNORE, IGNORE, IGNORE, IGNORE] + [0] * 10
     assert chans[1] == [0, IGNORE, 0, IGNORE, IGNORE, IGNORE, IGNORE, IGNORE] + [0] * 10
-    assert all((o.src_system, o.src_component, o.dest) == (255, 191, Link.AUTOPILOT) for o in out[:2])
-    assert texts(out) == ["RB: stopped, overrides released"]
+    assert all((o.src_system, o.src_component, o.dest) == (255, 191, Link.AUTOPILOT) for o in out[:3])
+    assert out[2].msg.tc1 == 0  # a TIMESYNC request: the autopilot answers it after parsing the two above
+    assert texts(out) == ["RB: stopping, neutral and release sent"]
+    assert state(rig) is CommandState.STOPPING and not rig.core.stop_settled
+    # The answer (tc1 set, ts1 echoed) confirms the stop; nothing is sent after it.
+    answer = Rig.wire(rig.ap, mavlink.MAVLink_timesync_message(tc1=123, ts1=out[2].msg.ts1))
+    reaction = rig.feed(Link.AUTOPILOT, answer, 0.05)
+    assert reaction.consumed and texts(reaction.out) == ["RB: stopped, autopilot confirmed release"]
+    assert rig.core.stop_settled and rig.core.stop_confirmed is True
     assert rig.core.tick(0.5) == [] and rig.core.shutdown(0.6) == []
     assert rig.local(0.7, vx=0.5) == Reaction(consumed=False, out=())
+
+
+def test_an_unanswered_stop_is_resent_then_given_up_and_said() -> None:
+    rig = ready()
+    rig.local(0.01, vx=0.5, mask=VEL_ONLY)
+    first = rig.core.shutdown(0.02)
+    resend_s = rig.core.next_deadline_s(0.02)
+    assert resend_s == pytest.approx(0.12)  # the first resend
+    assert rig.core.tick(0.05) == []
+    resent = rig.core.tick(resend_s)
+    assert [o.msg.get_type() for o in resent] == ["RC_CHANNELS_OVERRIDE", "RC_CHANNELS_OVERRIDE", "TIMESYNC"]
+    assert resent[2].msg.ts1 != first[2].msg.ts1  # a new probe each time: any answer counts
+    # Someone else's TIMESYNC (the autopilot's own request, or an answer to a GCS) is not ours.
+    for msg in (mavlink.MAVLink_timesync_message(tc1=0, ts1=first[2].msg.ts1),
+                mavlink.MAVLink_timesync_message(tc1=5, ts1=77)):
+        assert not rig.feed(Link.AUTOPILOT, Rig.wire(rig.ap, msg), 0.15).consumed
+    assert not rig.feed(Link.GCS, Rig.wire(rig.gcs, mavlink.MAVLink_timesync_message(5, first[2].msg.ts1)),
+                        0.16).consumed  # only the autopilot's answer proves the autopilot's parse
+    assert rig.core.tick(rig.core.next_deadline_s(0.2)) and not rig.core.stop_settled
+    out = rig.core.tick(rig.core.next_deadline_s(0.3))
+    assert texts(out) == ["RB: stop NOT confirmed by the autopilot"]
+    assert rig.core.stop_settled and rig.core.stop_confirmed is False
+    assert rig.core.counters["stop.sent"] == 3 and rig.core.counters["stop.unconfirmed"] == 1
+
+
+def test_an_answer_to_an_earlier_probe_confirms_too() -> None:
+    rig = ready()
+    first = rig.core.shutdown(0.02)
+    rig.core.tick(rig.core.next_deadline_s(0.02))  # resent: probe 2 in flight
+    late = Rig.wire(rig.ap, mavlink.MAVLink_timesync_message(tc1=9, ts1=first[-2].msg.ts1))
+    assert rig.feed(Link.AUTOPILOT, late, 0.13).consumed and rig.core.stop_confirmed is True
 
 
 def test_shutdown_release_on_ch9_18() -> None:
@@ -580,6 +619,54 @@ def test_shutdown_release_on_ch9_18() -> None:
 def test_shutdown_before_the_vehicle_is_known_sends_no_override() -> None:
     rig = Rig()
     assert [o.msg.get_type() for o in rig.core.shutdown(0.0)] == ["STATUSTEXT"]
+    assert rig.core.stop_settled and rig.core.stop_confirmed is None  # nothing to wait for
+
+
+# ------------------------------------------------------------------ HOLD (safety.stop_modes)
+
+
+def drive_with_requests(rig: Rig, t0: float, t1: float, vx: float) -> list[tuple[float, Outgoing]]:
+    """A GCS streaming a request every 0.1 s from t0 to t1, the core ticked at its deadlines between."""
+    out: list[tuple[float, Outgoing]] = []
+    t = t0
+    while t < t1 - 1e-9:
+        out += [(t, o) for o in rig.local(t, vx=vx, mask=VEL_ONLY).out]
+        out += rig.run_until(min(t + 0.1, t1) - 1e-9, t, heartbeat_every_s=None)
+        t = round(t + 0.1, 9)
+    return out
+
+
+def test_hold_brakes_to_a_stop_holds_neutral_and_needs_a_fresh_request_after_it() -> None:
+    rig = ready(profile(fast=False))
+    drive_with_requests(rig, 0.0, 1.0, 0.5)
+    assert rig.core.commanded.v_m_s == pytest.approx(0.5)
+    reaction = rig.heartbeat(1.0, mode=mavlink.ROVER_MODE_HOLD)
+    assert state(rig) is CommandState.HOLD and rig.core.request is None
+    assert texts(reaction.out) == ["RB: autopilot in HOLD, braking, then neutral"]
+    # Requests still streaming are refused (said once per source), the limiter brakes at max decel.
+    out = drive_with_requests(rig, 1.0, 1.5, 0.5)
+    assert rig.core.counters["dropped.hold"] == 5
+    assert sum("in HOLD, request from 255:190 ignored" in t for t in texts(out)) == 1
+    pwm = [left for left, _ in overrides(out)]
+    assert pwm[0] < 1500 + 500 * 0.5 / 0.05 / 20.944 and pwm[-1] == 1500  # ramped down, then neutral
+    assert all(a >= b for a, b in itertools.pairwise(pwm))  # never back up
+    assert rig.core.commanded.v_m_s == 0.0
+    # Back in GUIDED: the old request does not resume; a fresh one drives.
+    rig.heartbeat(2.0, mode=15)
+    assert state(rig) is CommandState.IDLE
+    assert overrides(rig.core.tick(2.05)) == [(1500, 1500)]
+    rig.local(2.1, vx=0.5, mask=VEL_ONLY)
+    assert state(rig) is CommandState.ACTIVE
+
+
+def test_stop_modes_are_a_parameter() -> None:
+    rig = ready(profile(safety={"stop_modes": ()}))
+    rig.heartbeat(0.02, mode=mavlink.ROVER_MODE_HOLD)
+    rig.local(0.03, vx=0.5, mask=VEL_ONLY)
+    assert state(rig) is CommandState.ACTIVE  # HOLD is not a stop mode here
+    rig = ready(profile(safety={"stop_modes": (11,)}))  # RTL
+    rig.heartbeat(0.02, mode=11)
+    assert state(rig) is CommandState.HOLD
 
 
 # ------------------------------------------------------------------ through the composed BridgeCore

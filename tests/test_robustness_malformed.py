@@ -268,7 +268,7 @@ class Rig:
             self.oracle.driving_allowed += 1
 
     def close(self) -> None:
-        self.runner.stop_safely(self.t_s)
+        self.runner.begin_stop(self.t_s)
         self.runner.close()
 
 
@@ -302,8 +302,10 @@ def test_100k_mutated_frames_into_both_links_no_crash_no_unsafe_output_all_accou
     # a 1-in-65536 CRC collision); with zero-velocity seeds that almost never means a non-zero request.
     assert rig.oracle.driving_allowed <= 200
     rig.close()
-    release = [m for m in (mavlink.MAVLink(None).parse_buffer(ap_q.written[-1]) or [])]
+    last = [m for w in ap_q.written[-3:] for m in (mavlink.MAVLink(None).parse_buffer(w) or [])]
+    release = [m for m in last if m.get_type() == "RC_CHANNELS_OVERRIDE"]
     assert release and release[-1].chan1_raw == 0 and release[-1].chan3_raw == 0
+    assert last[-1].get_type() == "TIMESYNC" and last[-1].tc1 == 0  # the probe that confirms the stop
 
 
 def test_mutated_frames_through_real_udp_sockets() -> None:

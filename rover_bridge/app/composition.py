@@ -91,15 +91,32 @@ class BridgeCore:
         return min([hb] + [sub.next_deadline_s(now_s) for sub in self._subcores])
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
-        """Every subcore's safe-stop messages (neutral, then release), in order."""
+        """Every subcore's safe-stop messages (neutral, release, the probe that confirms them), in order.
+        The shell then keeps handling and ticking until `stop_settled` (see CommandCore.shutdown)."""
         out: list[Outgoing] = []
         for sub in self._subcores:
             out.extend(sub.shutdown(now_s))
         return out
+
+    @property
+    def stop_settled(self) -> bool:
+        """shutdown() has run and the autopilot confirmed it, or the wait for that is over."""
+        return self.command.stop_settled
+
+    @property
+    def stop_confirmed(self) -> bool | None:
+        """True: the autopilot proved it handled the stop; False: it did not answer; None: nothing to stop."""
+        return self.command.stop_confirmed
 
     def _heartbeats(self) -> list[Outgoing]:
         msg = mavlink.MAVLink_heartbeat_message(
             type=mavlink.MAV_TYPE_ONBOARD_CONTROLLER, autopilot=mavlink.MAV_AUTOPILOT_INVALID,
             base_mode=0, custom_mode=0, system_status=mavlink.MAV_STATE_ACTIVE, mavlink_version=3)
         sysid, compid = self.identity.own_system_id, self.identity.component_id
-        return [Outgoing(Link.GCS, msg, sysid, compid), Outgoing(Link.AUTOPILOT, msg, sysid, compid)]
+        out = [Outgoing(Link.AUTOPILOT, msg, sysid, compid)]
+        # To the ground stations only while the autopilot is there: the bridge's heartbeat carries the
+        # vehicle's system id, and GCS libraries (MAVSDK: any heartbeat of the system in the last 3 s)
+        # would otherwise show a vehicle whose autopilot is gone as connected.
+        if self.command.autopilot_alive:
+            out.insert(0, Outgoing(Link.GCS, msg, sysid, compid))
+        return out

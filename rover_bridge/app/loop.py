@@ -35,6 +35,10 @@ MAX_SLEEP_S = 0.05
 # due deadlines, so a flooding link delays the control output by at most this many frames (instead
 # of its whole backlog) and cannot starve the other links.
 RUN_BATCH = 16
+# While waiting for the autopilot to confirm the stop: how long one wait may last, and how far past
+# the core's own timeout the shell gives up if the core never settles (a bug must not hang the exit).
+STOP_POLL_S = 0.01
+STOP_WAIT_MARGIN_S = 0.2
 
 
 class TlogWriter:
@@ -167,18 +171,49 @@ class Runner:
             if wake_fd is not None:
                 _drain(wake_fd)
 
-    def stop_safely(self, now_s: float) -> None:
-        """Send the core's safe-stop sequence (neutral, then release). Safe to call twice."""
+    def begin_stop(self, now_s: float) -> None:
+        """Send the core's safe-stop sequence (neutral, release, the probe that confirms them). The
+        links stay open: `step` goes on handling the autopilot's answer. Safe to call twice."""
         if self._stopped:
             return
         self._stopped = True
-        # Whatever arrived last still counts (e.g. a final ACK); a broken link must not block the stop.
+        self.send_all(self.core.shutdown(now_s))
+
+    def stop_safely(self, clock: Callable[[], float] = time.monotonic) -> bool | None:
+        """Stop the rover and wait, bounded, for the autopilot's proof; returns core.stop_confirmed.
+
+        Over a stream link (TCP) bytes sent just before the link closes may never be parsed by the
+        autopilot, so the link stays open until the core has its answer (or its timeout,
+        safety.stop_confirm_timeout_s). Only the autopilot link is read meanwhile (telemetry is still
+        forwarded); an error while waiting is logged and the wait goes on: the stop is already out.
+        """
         try:
-            self.send_all(self.core.shutdown(now_s))
+            self.begin_stop(clock())
+            start = clock()
+            # The core times the wait; this bound only guards against a core that never settles.
+            give_up = start + self.core.profile.safety.stop_confirm_timeout_s + STOP_WAIT_MARGIN_S
+            ready: list[Endpoint] | None = [self.autopilot]
+            errors = 0
+            while not self.core.stop_settled and (now := clock()) < give_up:
+                try:
+                    self.step(now, RUN_BATCH, ready)
+                except Exception:  # the stop is out; keep listening for its proof
+                    errors += 1
+                    if errors == 1:
+                        log.exception("error while waiting for the stop to be confirmed")
+                ready = self._wait_autopilot(clock)
+            return self.core.stop_confirmed
         finally:
             if self.tlog is not None:
                 self.tlog.close()
-                self.tlog = None  # frames after the stop (a final ACK) are not recorded
+                self.tlog = None  # frames after the stop are not recorded
+
+    def _wait_autopilot(self, clock: Callable[[], float]) -> list[Endpoint]:
+        timeout = max(0.0, min(STOP_POLL_S, self.next_deadline_s - clock()))
+        fd = self.autopilot.fileno()
+        if fd is not None and timeout > 0.0:
+            select.select([fd], [], [], timeout)
+        return [self.autopilot]
 
     def close(self) -> None:
         for ep in self.endpoints:

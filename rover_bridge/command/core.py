@@ -28,6 +28,13 @@ Decisions (the README repeats them for users):
   motion brakes like a timeout.
 - DO_SET_SERVO refused by the autopilot (servo mode): REFUSED, request dropped, trim on both
   outputs; a fresh request tries again.
+- The autopilot in one of safety.stop_modes (ArduPilot Rover's HOLD, what a GCS's Hold, Pause or
+  Stop button selects: RC passthrough ignores the mode, so the wheels would keep the bridge's PWM):
+  HOLD, the request is dropped and the limiter brakes to zero, then neutral; requests are refused
+  while it lasts, and only a fresh one after the mode has changed drives again.
+- shutdown (every exit path of the shell): neutral, release, then a TIMESYNC probe; STOPPING until
+  the autopilot answers the probe (proof that it parsed the stop) or stop_confirm_timeout_s passes,
+  resending every STOP_RESEND_S; then STOPPED, and nothing more is sent.
 - Requests are consumed only when addressed to the vehicle; while its id is unknown they are
   forwarded untouched. Only requests arriving on the GCS side are considered.
 """
@@ -71,7 +78,9 @@ class CommandState(enum.Enum):
     LINK_LOST = "link_lost"  # autopilot heartbeat lost: neutral until it returns and a fresh request comes
     DISARMED = "disarmed"  # require_armed and the autopilot is disarmed: neutral
     REFUSED = "refused"  # the autopilot refused DO_SET_SERVO: neutral until a fresh request
-    STOPPED = "stopped"  # shutdown() has run: nothing more is sent
+    HOLD = "hold"  # the autopilot is in a stop mode (HOLD): brake to zero, then neutral, until a fresh request
+    STOPPING = "stopping"  # shutdown() sent neutral and release: waiting for the autopilot's proof
+    STOPPED = "stopped"  # the stop is over (confirmed or timed out): nothing more is sent
 
 
 STATE_TEXT = {
@@ -81,10 +90,21 @@ STATE_TEXT = {
     CommandState.LINK_LOST: (mavlink.MAV_SEVERITY_CRITICAL, "RB: autopilot heartbeat lost, neutral"),
     CommandState.DISARMED: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot disarmed, neutral"),
     CommandState.REFUSED: (mavlink.MAV_SEVERITY_ERROR, "RB: DO_SET_SERVO refused, neutral"),
-    CommandState.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, overrides released"),
+    CommandState.HOLD: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot in HOLD, braking, then neutral"),
+    CommandState.STOPPING: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopping, neutral and release sent"),
+    CommandState.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, autopilot confirmed release"),
 }
+STOP_UNCONFIRMED = (mavlink.MAV_SEVERITY_CRITICAL, "RB: stop NOT confirmed by the autopilot")
+STOP_NOTHING = (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped (no vehicle known: nothing sent)")
 
 _DRIVING = (CommandState.ACTIVE, CommandState.BRAKING)
+_RAMPING = (CommandState.ACTIVE, CommandState.BRAKING, CommandState.HOLD)  # the limiter runs, no reset
+_OVER = (CommandState.STOPPING, CommandState.STOPPED)
+# Stop confirmation: a TIMESYNC request (tc1 = 0) goes after neutral and release; ArduPilot answers it
+# while parsing (GCS_Common.cpp handle_timesync, ts1 echoed), so the answer proves that both were
+# handled. ts1 carries this tag plus the attempt number, so the answer is recognisably ours.
+STOP_PROBE_TAG = 0x5242_5354 << 32  # "RBST"
+STOP_RESEND_S = 0.1
 _ACK_OK = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
 
 
@@ -113,6 +133,13 @@ class CommandCore:
         self._refused = False
         self._said: set[tuple[str, int, int]] = set()
         self.security = SecurityPolicy(profile.security)
+        self._custom_mode: int | None = None  # the autopilot's mode (HEARTBEAT custom_mode)
+        self._stop_modes = frozenset(profile.safety.stop_modes)
+        # Stop confirmation (see shutdown): when it began, when it was last sent, the probes in flight.
+        self._stop_began_s = 0.0
+        self._stop_sent_s = 0.0
+        self._stop_attempts = 0
+        self.stop_confirmed: bool | None = None  # None until answered or timed out (or nothing to stop)
 
     # ----------------------------------------------------------------- read-only views
 
@@ -121,14 +148,24 @@ class CommandCore:
         """The twist of the last output (after the limiter)."""
         return self.limiter.current
 
+    @property
+    def autopilot_alive(self) -> bool:
+        """The autopilot's heartbeat is fresh (seen, not timed out)."""
+        return self.state not in (CommandState.WAITING, CommandState.LINK_LOST)
+
+    @property
+    def stop_settled(self) -> bool:
+        """shutdown() has run and its confirmation is over (answered or timed out)."""
+        return self.state is CommandState.STOPPED
+
     # ----------------------------------------------------------------- SubCore protocol
 
     # What handle() reads from the autopilot link (BridgeCore decodes nothing else from it).
-    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK"})
+    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC"})
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
-        if self.state is CommandState.STOPPED:
-            return NOTHING
+        if self.state in _OVER:
+            return self._while_stopping(inc, now_s)
         msg = inc.msg
         kind = msg.get_type()
         if inc.link is Link.AUTOPILOT:
@@ -146,10 +183,15 @@ class CommandCore:
     def tick(self, now_s: float) -> list[Outgoing]:
         if self.state is CommandState.STOPPED:
             return []
+        if self.state is CommandState.STOPPING:
+            return self._stop_tick(now_s)
         due = self._next_output_s is None or now_s >= self._next_output_s
         return self._advance(now_s, force_output=due)
 
     def next_deadline_s(self, now_s: float) -> float:
+        if self.state is CommandState.STOPPING:
+            return min(self._stop_sent_s + STOP_RESEND_S,
+                       self._stop_began_s + self.profile.safety.stop_confirm_timeout_s)
         if self.state is CommandState.STOPPED or self.identity.vehicle_system_id is None:
             return now_s + self.period_s  # nothing can be sent yet; look again a period later
         deadlines = [now_s if self._next_output_s is None else self._next_output_s]
@@ -160,21 +202,67 @@ class CommandCore:
         return min(deadlines)
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
-        """Neutral, then release (servo mode: trim on both outputs); nothing is sent afterwards."""
-        if self.state is CommandState.STOPPED:
+        """Neutral, then release (servo mode: trim on both outputs), then a TIMESYNC probe; STOPPING.
+
+        Sent is not done: over a stream link (TCP: SITL's SERIAL0, mavlink-router) ArduPilot parses
+        its input on its main loop, and bytes a client sends just before it closes are never parsed as
+        its own, so a stop that is not confirmed may not have happened (rc_override: 3 s more driving;
+        servo: no end). The autopilot answers the probe while parsing, after the stop, so its answer
+        proves the stop; until then (at most safety.stop_confirm_timeout_s) the stop is resent every
+        STOP_RESEND_S and the shell keeps the link open. Nothing but the stop is sent afterwards.
+        """
+        if self.state in _OVER:
             return []
         self._drop_request()
-        vehicle = self.identity.vehicle_system_id
-        out: list[Outgoing] = []
-        if vehicle is not None:
-            target = (vehicle, self.identity.autopilot_component_id)
-            msgs = self.outputs.command(self.outputs.neutral, *target)
-            if self.outputs.mode == "rc_override":
-                msgs += self.outputs.release(*target)
-            out += [self._to_autopilot(m) for m in msgs]
-            self.last_wheel_pwm = self.outputs.neutral
-        out += self._set_state(CommandState.STOPPED, now_s)
+        if self.identity.vehicle_system_id is None:
+            return self._set_state(CommandState.STOPPED, now_s, STOP_NOTHING)  # no vehicle: nothing to stop
+        self._stop_began_s = now_s
+        out = self._stop_messages(now_s)
+        out += self._set_state(CommandState.STOPPING, now_s)
         return out
+
+    def _stop_messages(self, now_s: float) -> list[Outgoing]:
+        vehicle = self.identity.vehicle_system_id
+        assert vehicle is not None
+        target = (vehicle, self.identity.autopilot_component_id)
+        msgs = self.outputs.command(self.outputs.neutral, *target)
+        if self.outputs.mode == "rc_override":
+            msgs += self.outputs.release(*target)
+        self._stop_attempts += 1
+        msgs.append(mavlink.MAVLink_timesync_message(tc1=0, ts1=STOP_PROBE_TAG + self._stop_attempts))
+        self.last_wheel_pwm = self.outputs.neutral
+        self._stop_sent_s = now_s
+        self._count("stop.sent")
+        return [self._to_autopilot(m) for m in msgs]
+
+    def _stop_tick(self, now_s: float) -> list[Outgoing]:
+        if now_s >= self._stop_began_s + self.profile.safety.stop_confirm_timeout_s:
+            self.stop_confirmed = False
+            self._count("stop.unconfirmed")
+            log.error("the autopilot did not confirm the stop within %.2f s: it may still drive the wheels "
+                      "(rc_override: until RC_OVERRIDE_TIME; servo: until something else moves them)",
+                      self.profile.safety.stop_confirm_timeout_s)
+            return self._set_state(CommandState.STOPPED, now_s, STOP_UNCONFIRMED)
+        if now_s >= self._stop_sent_s + STOP_RESEND_S:
+            return self._stop_messages(now_s)
+        return []
+
+    def _while_stopping(self, inc: Incoming, now_s: float) -> Reaction:
+        """While STOPPING only the probe's answer matters: a TIMESYNC reply (tc1 != 0) echoing our ts1."""
+        msg = inc.msg
+        if (self.state is not CommandState.STOPPING or inc.link is not Link.AUTOPILOT
+                or msg.get_type() != "TIMESYNC"):
+            return NOTHING
+        try:
+            ours = int(msg.tc1) != 0 and 0 < int(msg.ts1) - STOP_PROBE_TAG <= self._stop_attempts
+        except (TypeError, ValueError):
+            return NOTHING
+        if not ours:
+            return NOTHING
+        self.stop_confirmed = True
+        self._count("stop.confirmed")
+        log.info("stop confirmed by the autopilot after %.0f ms", 1000.0 * (now_s - self._stop_began_s))
+        return Reaction(consumed=True, out=tuple(self._set_state(CommandState.STOPPED, now_s)))
 
     # ----------------------------------------------------------------- hooks
 
@@ -193,6 +281,7 @@ class CommandCore:
             return NOTHING
         self._last_heartbeat_s = now_s
         self._armed = bool(int(msg.base_mode) & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        self._custom_mode = int(msg.custom_mode)
         return Reaction(consumed=False, out=tuple(self._advance(now_s, force_output=False)))
 
     def _on_attitude(self, msg: MAVLinkMessage, now_s: float) -> None:
@@ -252,6 +341,12 @@ class CommandCore:
         if self.state is CommandState.DISARMED:
             self._count("dropped.disarmed")
             return Reaction(consumed=True, out=tuple(out))
+        if self.state is CommandState.HOLD:
+            # The GCS pressed Hold: a request still streaming from a planner must not undo it.
+            self._count("dropped.hold")
+            out += self._say_once("dropped.hold", f"RB: in HOLD, request from {source[0]}:{source[1]} ignored",
+                                  source, now_s)
+            return Reaction(consumed=True, out=tuple(out))
         request: Request = decoded
         if isinstance(decoded, HeadingVelocity):
             yaw = self._fresh_yaw(now_s)
@@ -294,6 +389,11 @@ class CommandCore:
         if self.profile.safety.require_armed and not self._armed:
             self._drop_request()
             return CommandState.DISARMED
+        if self._custom_mode in self._stop_modes:
+            # Brake through the limiter (the limiter keeps its motion), then neutral; the request is gone,
+            # so only a fresh one after the mode has changed drives again.
+            self.request, self._request_s = None, None
+            return CommandState.HOLD
         if self.request is None or self._request_s is None:
             return CommandState.REFUSED if self._refused else CommandState.IDLE
         if now_s >= self._request_s + self.profile.command.setpoint_timeout_s or self._target(now_s) is None:
@@ -325,14 +425,15 @@ class CommandCore:
         target = self._target(now_s) if self.state is CommandState.ACTIVE else None
         last = self._last_output_s
         dt_s = self.period_s if last is None else min(self.period_s, now_s - last)
-        if self.state in _DRIVING:
+        if self.state in _RAMPING:
             if dt_s > 0.0:
                 self.limiter.step(target if target is not None else Twist2D(), dt_s)
         else:
             self.limiter.reset(Twist2D())
         wheels = self.drive.to_wheel_speeds(self.limiter.current)
         wheels = wheels.desaturate(self.profile.robot.max_wheel_rad_s)
-        pwm = self.outputs.to_pwm(wheels) if self.state in _DRIVING else self.outputs.neutral
+        moving = self.state in _DRIVING or (self.state is CommandState.HOLD and self.limiter.current != Twist2D())
+        pwm = self.outputs.to_pwm(wheels) if moving else self.outputs.neutral
         msgs = self.outputs.command(pwm, vehicle, self.identity.autopilot_component_id)
         self.last_wheel_pwm = pwm
         self._last_output_s = now_s
@@ -354,14 +455,14 @@ class CommandCore:
         self.request, self._request_s = None, None
         self.limiter.reset(Twist2D())
 
-    def _set_state(self, new: CommandState, now_s: float) -> list[Outgoing]:
+    def _set_state(self, new: CommandState, now_s: float, text: tuple[int, str] | None = None) -> list[Outgoing]:
         if new is self.state:
             return []
         old, self.state = self.state, new
         self._count(f"state.{new.value}")
         log.info("command state %s -> %s", old.value, new.value)
-        severity, text = STATE_TEXT[new]
-        return self.reporter.statustext(severity, text, now_s, key=f"state.{new.value}")
+        severity, said = text if text is not None else STATE_TEXT[new]
+        return self.reporter.statustext(severity, said, now_s, key=f"state.{new.value}")
 
     def _to_autopilot(self, msg: MAVLinkMessage) -> Outgoing:
         # ArduPilot obeys overrides only from its GCS id (MAV_GCS_SYSID): see output.override_source_system.

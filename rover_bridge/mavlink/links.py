@@ -196,6 +196,12 @@ class Endpoint:
         return frame
 
     def close(self) -> None:
+        port = getattr(self.conn, "port", None)
+        if port is not None and not isinstance(port, socket.socket) and hasattr(port, "flush"):
+            # A serial port: wait until the UART has sent what is queued (tcdrain), the stop included;
+            # closing first may discard the kernel's output buffer.
+            with contextlib.suppress(Exception):
+                port.flush()
         with contextlib.suppress(OSError):  # closing a dead serial port must not mask the real error
             self.conn.close()
 

@@ -91,6 +91,7 @@ def main(args: argparse.Namespace) -> int:
     log.warning("rover-bridge running: autopilot %s, gcs %s, profile %s", args.autopilot,
                 ", ".join(gcs_urls) or "none", args.params)
     code = 0
+    confirmed: bool | None = None
     try:
         runner.run(lambda: bool(stop_requested) or (end is not None and time.monotonic() >= end),
                    wake_fd=read_fd)
@@ -99,7 +100,7 @@ def main(args: argparse.Namespace) -> int:
         code = 1
     finally:
         try:
-            runner.stop_safely(time.monotonic())
+            confirmed = runner.stop_safely(time.monotonic)
         finally:
             runner.close()
             signal.set_wakeup_fd(old_wakeup)
@@ -110,7 +111,9 @@ def main(args: argparse.Namespace) -> int:
     if args.stats_json:
         write_stats(args.stats_json, runner, verifier)
     if stop_requested:
-        log.warning("stopped by signal %d: neutral sent, overrides released", stop_requested[0])
+        how = {True: "confirmed by the autopilot", False: "NOT confirmed by the autopilot",
+               None: "no vehicle was known"}[confirmed]
+        log.warning("stopped by signal %d: neutral and release sent, %s", stop_requested[0], how)
     return code
 
 
