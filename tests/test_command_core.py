@@ -659,6 +659,45 @@ def test_hold_brakes_to_a_stop_holds_neutral_and_needs_a_fresh_request_after_it(
     assert state(rig) is CommandState.ACTIVE
 
 
+def _set_mode(rig: Rig, t: float, mode: int, via: str = "COMMAND_LONG") -> Reaction:
+    custom = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    if via == "SET_MODE":
+        msg = mavlink.MAVLink_set_mode_message(1, custom, mode)
+    else:
+        msg = mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, custom, mode, 0, 0, 0, 0, 0)
+    return rig.feed(Link.GCS, Rig.wire(rig.gcs, msg), t)
+
+
+@pytest.mark.parametrize("via", ["COMMAND_LONG", "SET_MODE"])
+def test_a_gcs_asking_for_hold_stops_at_once_before_the_heartbeat_reports_it(via: str) -> None:
+    rig = ready()
+    rig.local(0.01, vx=0.5, mask=VEL_ONLY)
+    reaction = _set_mode(rig, 0.1, mavlink.ROVER_MODE_HOLD, via)
+    assert not reaction.consumed  # forwarded to the autopilot, which decides
+    assert state(rig) is CommandState.HOLD and "HOLD" in texts(reaction.out)[0]
+    rig.heartbeat(0.5, mode=15)  # a heartbeat already in flight still says GUIDED: HOLD stays
+    assert state(rig) is CommandState.HOLD
+    rig.heartbeat(1.0, mode=mavlink.ROVER_MODE_HOLD)  # reported: from now on the heartbeat governs
+    rig.heartbeat(2.0, mode=15)
+    assert state(rig) is CommandState.IDLE
+
+
+def test_a_refused_or_never_reported_hold_request_lets_the_heartbeat_govern_again() -> None:
+    rig = ready()
+    _set_mode(rig, 0.1, mavlink.ROVER_MODE_HOLD)
+    refused = mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_RESULT_FAILED, 0, 0,
+                                                 255, 190)
+    rig.feed(Link.AUTOPILOT, Rig.wire(rig.ap, refused), 0.15)
+    rig.heartbeat(0.2, mode=15)
+    assert state(rig) is CommandState.IDLE
+    _set_mode(rig, 1.0, mavlink.ROVER_MODE_HOLD)
+    rig.heartbeat(1.5, mode=15)
+    assert state(rig) is CommandState.HOLD
+    rig.heartbeat(2.6, mode=15)  # 1.6 s later and still not reported: the autopilot's word wins
+    assert state(rig) is CommandState.IDLE
+    assert _set_mode(rig, 3.0, 15).out == () and state(rig) is CommandState.IDLE  # not a stop mode
+
+
 def test_stop_modes_are_a_parameter() -> None:
     rig = ready(profile(safety={"stop_modes": ()}))
     rig.heartbeat(0.02, mode=mavlink.ROVER_MODE_HOLD)

@@ -179,3 +179,34 @@ def test_sigterm_during_motion_releases_the_overrides(tmp_path: Path) -> None:
             proc.wait()
         gcs.close()
         emu.close()
+
+
+def test_a_ground_station_switching_to_hold_stops_the_rover_until_a_fresh_request(rig: Lockstep) -> None:
+    # Per-wheel RC passthrough ignores the autopilot's mode: without the bridge's stop modes the
+    # wheels would keep turning in HOLD. The GCS's Hold button sends DO_SET_MODE (HOLD = 4).
+    rig.run_for(2.0, send=lambda: rig.send_body_velocity(0.5, 0.0))
+    assert rig.emu.truth.v_m_s > 0.45
+    rig.gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0,
+                                  mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, 0, 0, 0, 0, 0)
+    speeds = []
+    for _ in range(200):  # 2 s, the planner still streaming its request
+        if len(speeds) % 10 == 0:
+            rig.send_body_velocity(0.5, 0.0)
+        rig.step()
+        speeds.append(rig.emu.truth.v_m_s)
+    assert rig.emu.mode == 4
+    assert rig.core.command.state.value == "hold"
+    assert speeds[-1] < 0.01 and rig.emu.servo_outputs[1] == 1500  # stopped, and held at neutral
+    # At once (the bridge saw the GCS's request pass, it does not wait for the next 1 Hz heartbeat) and
+    # braked, not cut: 0.5 m/s at 2 m/s^2 is 0.25 s, plus the motors' lag.
+    stopped_s = next(i for i, v in enumerate(speeds) if v < 0.02) * rig.dt_s
+    assert 0.2 < stopped_s < 0.7, stopped_s
+    assert any("HOLD" in m.text for _, m in rig.view.of("STATUSTEXT"))
+    # Back to GUIDED: the old request does not resume by itself ...
+    rig.gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0,
+                                  mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 15, 0, 0, 0, 0, 0)
+    rig.run_for(1.5)
+    assert rig.emu.mode == 15 and abs(rig.emu.truth.v_m_s) < 0.01
+    # ... a fresh one drives.
+    rig.run_for(1.5, send=lambda: rig.send_body_velocity(0.5, 0.0))
+    assert rig.emu.truth.v_m_s > 0.45

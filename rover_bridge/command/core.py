@@ -105,6 +105,28 @@ _OVER = (CommandState.STOPPING, CommandState.STOPPED)
 # handled. ts1 carries this tag plus the attempt number, so the answer is recognisably ours.
 STOP_PROBE_TAG = 0x5242_5354 << 32  # "RBST"
 STOP_RESEND_S = 0.1
+# A ground station's request for a stop mode stops the rover at once; the autopilot's heartbeat (1 Hz,
+# possibly one already in flight) takes over after this long unless the autopilot refused the mode.
+HOLD_ANTICIPATION_S = 1.5
+MODE_REQUESTS = frozenset({"SET_MODE", "COMMAND_LONG", "COMMAND_INT"})
+
+
+def requested_custom_mode(msg: MAVLinkMessage, vehicle: int | None) -> int | None:
+    """The custom_mode a SET_MODE or DO_SET_MODE command asks of `vehicle`, or None if it asks nothing."""
+    try:
+        if msg.get_type() == "SET_MODE":
+            if vehicle is None or int(msg.target_system) not in (0, vehicle):
+                return None
+            base, custom = int(msg.base_mode), int(msg.custom_mode)
+        else:
+            if int(msg.command) != mavlink.MAV_CMD_DO_SET_MODE:
+                return None
+            if vehicle is None or int(msg.target_system) not in (0, vehicle):
+                return None
+            base, custom = int(msg.param1), int(msg.param2)
+    except (TypeError, ValueError, OverflowError, AttributeError):
+        return None  # NaN params, a malformed frame: not a mode request we can read
+    return custom if base & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED else None
 _ACK_OK = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
 
 
@@ -134,6 +156,7 @@ class CommandCore:
         self._said: set[tuple[str, int, int]] = set()
         self.security = SecurityPolicy(profile.security)
         self._custom_mode: int | None = None  # the autopilot's mode (HEARTBEAT custom_mode)
+        self._hold_requested_s: float | None = None  # a GCS asked for a stop mode; not yet reported
         self._stop_modes = frozenset(profile.safety.stop_modes)
         # Stop confirmation (see shutdown): when it began, when it was last sent, the probes in flight.
         self._stop_began_s = 0.0
@@ -178,6 +201,8 @@ class CommandCore:
             return NOTHING
         if kind in REQUEST_TYPES:
             return self._on_request(inc, now_s)
+        if kind in MODE_REQUESTS:
+            return self._on_mode_request(msg, now_s)
         return NOTHING
 
     def tick(self, now_s: float) -> list[Outgoing]:
@@ -282,6 +307,8 @@ class CommandCore:
         self._last_heartbeat_s = now_s
         self._armed = bool(int(msg.base_mode) & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         self._custom_mode = int(msg.custom_mode)
+        if self._custom_mode in self._stop_modes:
+            self._hold_requested_s = None  # reported: from now on the heartbeat says when it ends
         return Reaction(consumed=False, out=tuple(self._advance(now_s, force_output=False)))
 
     def _on_attitude(self, msg: MAVLinkMessage, now_s: float) -> None:
@@ -294,7 +321,21 @@ class CommandCore:
             return
         self._yaw_cw_rad, self._yaw_s = yaw, now_s
 
+    def _on_mode_request(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
+        """A ground station asks the vehicle for a mode (forwarded as is). A stop mode is acted on at
+        once: the heartbeat that reports it may be a second away, and a Hold button must stop now."""
+        mode = requested_custom_mode(msg, self.identity.vehicle_system_id)
+        if mode is None or mode not in self._stop_modes:
+            return NOTHING
+        self._hold_requested_s = now_s
+        self._count("hold.requested")
+        return Reaction(consumed=False, out=tuple(self._advance(now_s, force_output=False)))
+
     def _on_command_ack(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
+        if int(msg.command) == mavlink.MAV_CMD_DO_SET_MODE:
+            if self._hold_requested_s is not None and int(msg.result) not in _ACK_OK:
+                self._hold_requested_s = None  # the autopilot refused the stop mode: its heartbeat governs
+            return NOTHING
         if self.outputs.mode != "servo" or int(msg.command) != mavlink.MAV_CMD_DO_SET_SERVO:
             return NOTHING
         # MAVLink 1 acks carry no target (0): take them as ours, we are the one sending DO_SET_SERVO.
@@ -389,7 +430,10 @@ class CommandCore:
         if self.profile.safety.require_armed and not self._armed:
             self._drop_request()
             return CommandState.DISARMED
-        if self._custom_mode in self._stop_modes:
+        requested = self._hold_requested_s
+        if requested is not None and now_s >= requested + HOLD_ANTICIPATION_S:
+            self._hold_requested_s = requested = None
+        if self._custom_mode in self._stop_modes or requested is not None:
             # Brake through the limiter (the limiter keeps its motion), then neutral; the request is gone,
             # so only a fresh one after the mode has changed drives again.
             self.request, self._request_s = None, None
