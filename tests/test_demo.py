@@ -87,3 +87,29 @@ def _alive(pid: int) -> bool:
     except OSError:
         return False
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_the_demo_stamps_the_true_yaw_by_arrival_not_by_the_last_position() -> None:
+    # SIMSTATE has no time field; when its stream runs on another phase than LOCAL_POSITION_NED's (the
+    # bridge re-requests the EXTRA1 group), pairing it with the last position stamp made a spinning
+    # rover's true yaw up to a period late. A spin at 1.5 rad/s, positions at 20 Hz on the boot clock,
+    # SIMSTATE 25 ms out of phase; arrivals 1 ms after the send.
+    from rover_bridge.app.demo import Demo, errors_over_time
+    from rover_bridge.mavlink.dialect import mavlink
+    from rover_bridge.odometry import WheelOdometry
+
+    demo = Demo(progress=None)
+    wheel = WheelOdometry(track_width_m=0.30)
+    rate = 1.5
+    for k in range(40):
+        t = 10.0 + 0.05 * k
+        demo._collect(mavlink.MAVLink_local_position_ned_message(round(t * 1000), 0, 0, 0, 0, 0, 0), wheel,
+                      arrival_s=t + 100.001)
+        ts = t + 0.025
+        demo._collect(mavlink.MAVLink_simstate_message(0, 0, rate * ts, 0, 0, 0, 0, 0, 0, 0, 0), wheel,
+                      arrival_s=ts + 100.001)
+        demo.series.ekf.append((t, 0.0, 0.0, rate * t))  # an estimate exactly right at its stamps
+        demo.series.wheel.append((t, 0.0, 0.0, rate * t))
+    errs = errors_over_time(demo.series)
+    assert len(errs) > 30
+    assert max(e[4] for e in errs) < 0.05  # degrees; pairing with the last stamp gave 2.1 deg

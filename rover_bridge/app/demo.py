@@ -94,6 +94,11 @@ class Series:
     """
 
     truth: list[tuple[float, float, float, float]] = field(default_factory=list)  # t, north, east, yaw_cw
+    # SIMSTATE (the true yaw) has no time field, and its stream's phase differs from LOCAL_POSITION_NED's
+    # whenever something re-requests the EXTRA1 group (the bridge does): pairing it with the last position
+    # stamp put it up to a period late (2 deg at the demo's spin rate). Its samples are stamped by arrival
+    # instead, mapped onto the boot clock through the smallest arrival latency of the stamped messages.
+    truth_yaw: list[tuple[float, float]] = field(default_factory=list)  # t, yaw_cw
     ekf: list[tuple[float, float, float, float]] = field(default_factory=list)  # t, x_fwd, y_right, yaw_cw
     wheel: list[tuple[float, float, float, float]] = field(default_factory=list)
     odometry_msgs: int = 0
@@ -163,15 +168,26 @@ def _interp(series: list[tuple[float, float, float, float]], t: float) -> tuple[
     return a0 + f * (a1 - a0), b0 + f * (b1 - b0), y0 + f * _wrap(y1 - y0)
 
 
+def _interp_yaw(samples: list[tuple[float, float]], t: float) -> float | None:
+    if not samples or t < samples[0][0] or t > samples[-1][0]:
+        return None
+    i = bisect.bisect_left(samples, (t, -math.inf))
+    if samples[i][0] == t or i == 0:
+        return samples[i][1]
+    (t0, y0), (t1, y1) = samples[i - 1], samples[i]
+    return y0 + (t - t0) / (t1 - t0) * _wrap(y1 - y0) if t1 > t0 else y1
+
+
 def errors_over_time(series: Series) -> list[tuple[float, float, float, float, float]]:
     """(t since the first truth sample, wheel position error, EKF position error, wheel and EKF heading
     errors in degrees), at each ground-truth sample inside both estimates' time spans."""
     out = []
     t0 = series.truth[0][0] if series.truth else 0.0
-    for t, n, e, yaw in series.truth:
+    for t, n, e, _last_yaw in series.truth:
         w = _interp(series.wheel, t)
         k = _interp(series.ekf, t)
-        if w is None or k is None:
+        yaw = _interp_yaw(series.truth_yaw, t) if series.truth_yaw else _last_yaw
+        if w is None or k is None or yaw is None:
             continue
         out.append((t - t0, math.hypot(w[0] - n, w[1] - e), math.hypot(k[0] - n, k[1] - e),
                     abs(math.degrees(_wrap(w[2] - yaw))), abs(math.degrees(_wrap(k[2] - yaw)))))
@@ -218,7 +234,8 @@ class Demo:
         self.workdir = workdir
         self.procs: list[subprocess.Popen[bytes]] = []
         self.series = Series()
-        self._last_ned: tuple[float, float, float] | None = None
+        self._last_yaw = 0.0
+        self._arrival_offset_s: float | None = None  # smallest (arrival - boot stamp) seen
         self._last_progress_s = -1.0
         self._last_phase = ""
 
@@ -358,15 +375,24 @@ class Demo:
         return (f"[{'#' * done}{'.' * (20 - done)}] {t:5.1f}/{total_s:4.1f} s {phase:12s} "
                 f"N {pose[1]:+6.2f} E {pose[2]:+6.2f} yaw {math.degrees(pose[3]):+7.1f}")
 
-    def _collect(self, msg: Any, wheel: WheelOdometry) -> None:
+    def _arrived(self, stamp_s: float, arrival_s: float) -> None:
+        latency = arrival_s - stamp_s
+        if self._arrival_offset_s is None or latency < self._arrival_offset_s:
+            self._arrival_offset_s = latency
+
+    def _collect(self, msg: Any, wheel: WheelOdometry, arrival_s: float | None = None) -> None:
         kind = msg.get_type()
+        arrival = time.monotonic() if arrival_s is None else arrival_s
         if kind == "LOCAL_POSITION_NED":
-            self._last_ned = (msg.time_boot_ms * 1e-3, float(msg.x), float(msg.y))
-        elif kind == "SIMSTATE" and self._last_ned is not None:
-            # The emulator sends SIMSTATE (true yaw) right after LOCAL_POSITION_NED in the same step.
-            t, north, east = self._last_ned
+            t = msg.time_boot_ms * 1e-3
+            self._arrived(t, arrival)
             if not self.series.truth or t > self.series.truth[-1][0]:
-                self.series.truth.append((t, north, east, float(msg.yaw)))
+                self.series.truth.append((t, float(msg.x), float(msg.y), self._last_yaw))
+        elif kind == "SIMSTATE" and self._arrival_offset_s is not None:
+            self._last_yaw = float(msg.yaw)
+            t = arrival - self._arrival_offset_s
+            if not self.series.truth_yaw or t > self.series.truth_yaw[-1][0]:
+                self.series.truth_yaw.append((t, self._last_yaw))
         elif kind == "ODOMETRY":
             self.series.odometry_msgs += 1
             w, _, _, z = msg.q
@@ -377,6 +403,7 @@ class Demo:
             pose = wheel.update(left_m=float(msg.distance[0]), right_m=float(msg.distance[1]))
             # Our pose is x forward / y left / yaw CCW; truth and ODOMETRY are y right, yaw CW.
             t = msg.time_usec * 1e-6
+            self._arrived(t, arrival)
             if not self.series.wheel or t > self.series.wheel[-1][0]:
                 self.series.wheel.append((t, pose.x_m, -pose.y_m, -pose.yaw_rad))
         elif kind == "STATUSTEXT":
