@@ -1,10 +1,12 @@
-"""SIGTERM during motion: how long until the autopilot sees the overrides released, and until the
-bridge process has exited (target: neutral, release and exit within 200 ms).
+"""SIGTERM during motion: how long until the autopilot's motor outputs are back at trim (the stop has
+been parsed), and until the bridge process has exited (target: both within 200 ms).
 
 Runs the real `python -m rover_bridge run` against the sitl emulator (in this process, wall clock)
-and a scripted GCS on UDP loopback, drives forward at 0.5 m/s, then sends SIGTERM.
+and a scripted GCS on UDP loopback, drives forward at 0.5 m/s, then sends SIGTERM. The autopilot link
+is UDP or TCP (the emulator then parses a step after it reads, and drops what a closing client sent,
+as ArduPilot SITL does); the outputs are RC overrides or DO_SET_SERVO.
 
-    python benchmarks/bench_shutdown.py [--trials 10]
+    python benchmarks/bench_shutdown.py [--trials 10] [--link udp|tcp|both] [--mode rc_override|servo|both]
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -27,14 +30,15 @@ BODY_VEL_YAW_RATE_MASK = 0b0000_0101_1100_0111
 
 
 
-def trial(seed: int) -> tuple[float, float, int]:
-    """(ms until the emulator sees channel 1 released, ms until the process exited, exit code)."""
+def trial(seed: int, link: str, params: str) -> tuple[float, float, int]:
+    """(ms until both motor outputs are at trim, ms until the process exited, exit code)."""
     ap_port, gcs_port = free_udp_port(), free_udp_port()
     emu = Emulator(VehicleConfig(start_armed=True), seed=seed)
-    emu.open(f"udpin:127.0.0.1:{ap_port}")
+    emu.open(f"udpin:127.0.0.1:{ap_port}" if link == "udp" else "tcpin:127.0.0.1:0")
+    ap_url = f"udpout:127.0.0.1:{ap_port}" if link == "udp" else f"tcp:127.0.0.1:{emu.local_address[1]}"
     bridge = subprocess.Popen(
-        [sys.executable, "-m", "rover_bridge", "run", "--params", str(REPO / "params" / "default.toml"),
-         "--autopilot", f"udpout:127.0.0.1:{ap_port}", "--gcs", f"udpin:127.0.0.1:{gcs_port}"],
+        [sys.executable, "-m", "rover_bridge", "run", "--params", params,
+         "--autopilot", ap_url, "--gcs", f"udpin:127.0.0.1:{gcs_port}"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     gcs: Any = mavutil.mavlink_connection(f"udpout:127.0.0.1:{gcs_port}", source_system=255, source_component=190,
                                           dialect="ardupilotmega")
@@ -62,7 +66,7 @@ def trial(seed: int) -> tuple[float, float, int]:
             now = time.monotonic()
             emu.step(max(0.0005, now - last))
             last = now
-            if released_s is None and not emu.autopilot.has_override(1, emu.sim_time_us):
+            if released_s is None and emu.servo_outputs[1] == 1500 and emu.servo_outputs[3] == 1500:
                 released_s = now - t_signal
             time.sleep(0.0005)
         code = bridge.wait(timeout=5.0)
@@ -79,15 +83,24 @@ def trial(seed: int) -> tuple[float, float, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--trials", type=int, default=10)
+    parser.add_argument("--link", choices=("udp", "tcp", "both"), default="both")
+    parser.add_argument("--mode", choices=("rc_override", "servo", "both"), default="both")
     args = parser.parse_args()
-    rows = [trial(seed) for seed in range(args.trials)]
-    released = [r[0] for r in rows]
-    exited = [r[1] for r in rows]
-    print(f"# SIGTERM during motion, {args.trials} trials (target: release and exit within 200 ms)")
-    print(f"{'':28s} {'median':>8s} {'max':>8s}")
-    print(f"{'release seen by autopilot':28s} {statistics.median(released):8.1f} {max(released):8.1f} ms")
-    print(f"{'process exited':28s} {statistics.median(exited):8.1f} {max(exited):8.1f} ms")
-    print(f"exit codes: {sorted({r[2] for r in rows})}")
+    links = ("udp", "tcp") if args.link == "both" else (args.link,)
+    modes = ("rc_override", "servo") if args.mode == "both" else (args.mode,)
+    print(f"# SIGTERM during motion, {args.trials} trials each (target: outputs at trim and exit within 200 ms)")
+    print(f"{'link':5s} {'mode':12s} | {'at trim median':>14s} {'max':>8s} | {'exited median':>13s} {'max':>8s} "
+          "| codes")
+    with tempfile.TemporaryDirectory() as tmp:
+        for mode in modes:
+            params = Path(tmp) / f"{mode}.toml"
+            params.write_text(f'[output]\nmode = "{mode}"\n')
+            for link in links:
+                rows = [trial(seed, link, str(params)) for seed in range(args.trials)]
+                stopped = [r[0] for r in rows]
+                exited = [r[1] for r in rows]
+                print(f"{link:5s} {mode:12s} | {statistics.median(stopped):11.1f} ms {max(stopped):5.1f} ms | "
+                      f"{statistics.median(exited):10.1f} ms {max(exited):5.1f} ms | {sorted({r[2] for r in rows})}")
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ spin in place and a right turn.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 
 def omega_from_mavlink_yaw_rate(yaw_rate_cw_rad_s: float) -> float:
@@ -76,3 +77,51 @@ def covariance_frd_from_flu(cov_flu: list[list[float]]) -> list[list[float]]:
     """
     s = FLU_TO_FRD_SIGNS
     return [[s[i] * s[j] * float(cov_flu[i][j]) for j in range(6)] for i in range(6)]
+
+
+# ------------------------------------------------------------------ the autopilot's local frame
+
+@dataclass(frozen=True, slots=True)
+class NedPose:
+    """A pose in a local NED frame (the autopilot's LOCAL_POSITION_NED frame): north, east, yaw clockwise
+    from north (as ATTITUDE.yaw)."""
+
+    north_m: float = 0.0
+    east_m: float = 0.0
+    yaw_cw_rad: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class LocalAnchor:
+    """Where the bridge's own frame (x forward of the start pose, y left, yaw CCW) lies in a NED frame.
+
+    A point of the start frame, taken as FRD (x forward, y right), is rotated clockwise by
+    `rotation_cw_rad` (the start pose's heading from north) and moved by (north_m, east_m). The
+    identity anchor is the start frame itself (x as 'north', y right as 'east').
+    """
+
+    north_m: float = 0.0
+    east_m: float = 0.0
+    rotation_cw_rad: float = 0.0
+
+    @classmethod
+    def matching(cls, ours_x_m: float, ours_y_m: float, ours_yaw_rad: float, theirs: NedPose) -> LocalAnchor:
+        """The anchor that puts our pose (x, y left, yaw CCW) exactly onto `theirs`."""
+        rotation = math.remainder(theirs.yaw_cw_rad - yaw_frd_from_yaw_flu(ours_yaw_rad), 2.0 * math.pi)
+        c, s = math.cos(rotation), math.sin(rotation)
+        fwd, right = ours_x_m, y_frd_from_y_flu(ours_y_m)
+        return cls(theirs.north_m - (c * fwd - s * right), theirs.east_m - (s * fwd + c * right), rotation)
+
+    def to_ned(self, x_m: float, y_m: float, yaw_rad: float) -> NedPose:
+        """Our pose (x forward of the start pose, y left, yaw CCW) in the NED frame."""
+        c, s = math.cos(self.rotation_cw_rad), math.sin(self.rotation_cw_rad)
+        fwd, right = x_m, y_frd_from_y_flu(y_m)
+        return NedPose(self.north_m + c * fwd - s * right, self.east_m + s * fwd + c * right,
+                       math.remainder(yaw_frd_from_yaw_flu(yaw_rad) + self.rotation_cw_rad, 2.0 * math.pi))
+
+    def from_ned(self, ned: NedPose) -> tuple[float, float, float]:
+        """A NED pose in our frame: (x forward of the start pose, y left, yaw CCW)."""
+        c, s = math.cos(self.rotation_cw_rad), math.sin(self.rotation_cw_rad)
+        dn, de = ned.north_m - self.north_m, ned.east_m - self.east_m
+        fwd, right = c * dn + s * de, -s * dn + c * de
+        return fwd, -right, -math.remainder(ned.yaw_cw_rad - self.rotation_cw_rad, 2.0 * math.pi)

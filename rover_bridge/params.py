@@ -205,10 +205,43 @@ class OdometryParams:
     targets: str = _p(
         "gcs", "Where ODOMETRY goes: the ground stations, the autopilot (external navigation), both, "
         "or nowhere.", choices=("gcs", "autopilot", "both", "none"))
-    unobserved_variance: float = _p(
-        1e4, "Variance published for the axes the estimator does not observe (z, roll, pitch and their "
-        "rates). ArduPilot folds z into its position error and roll/pitch into its angle error: "
-        "lower it (e.g. 0.01) when feeding ArduPilot.", unit="m^2 | rad^2", lo=0.0, lo_open=True, hi=1e12)
+    unobserved_variance: float | None = _p(
+        None, "Variance published for the axes the estimator does not observe (z, roll, pitch and their "
+        "rates). Unset: 1e4 ('unknown') when ODOMETRY goes only to ground stations, 0.01 when it goes to the "
+        "autopilot (a rover on the ground: held by the ground, not measured), because ArduPilot folds z into "
+        "its one position error and roll/pitch into its one angle error, so a large value there leaves "
+        "position and yaw unweighted.", unit="m^2 | rad^2", lo=0.0, lo_open=True, hi=1e12)
+    frame: str = _p(
+        "auto", "The frame ODOMETRY's pose is in: 'start' (origin and axes of the bridge's start pose) or "
+        "'autopilot' (north-aligned by the autopilot's ATTITUDE yaw and anchored at its LOCAL_POSITION_NED, so "
+        "a restarted bridge continues the autopilot's frame); 'auto' is 'autopilot' when ODOMETRY goes to the "
+        "autopilot, else 'start'.", choices=("auto", "start", "autopilot"))
+    anchor_timeout_s: float = _p(
+        3.0, "frame 'autopilot': how long to hold ODOMETRY back, once wheel data and ATTITUDE flow, waiting "
+        "for the autopilot's LOCAL_POSITION_NED; without one (a cold start of both) the pose starts at the "
+        "origin, north-aligned.", unit="s", lo=0.0, hi=60.0)
+
+
+    @property
+    def to_autopilot(self) -> bool:
+        return self.targets in ("autopilot", "both")
+
+    @property
+    def resolved_frame(self) -> str:
+        """'start' or 'autopilot' ('auto' resolved by where ODOMETRY goes)."""
+        if self.frame != "auto":
+            return self.frame
+        return "autopilot" if self.to_autopilot else "start"
+
+    @property
+    def resolved_unobserved_variance(self) -> float:
+        if self.unobserved_variance is not None:
+            return self.unobserved_variance
+        return AUTOPILOT_UNOBSERVED_VARIANCE if self.to_autopilot else GCS_UNOBSERVED_VARIANCE
+
+
+GCS_UNOBSERVED_VARIANCE = 1e4  # sigma 100: "unknown", honest for a ground station
+AUTOPILOT_UNOBSERVED_VARIANCE = 0.01  # a rover on the ground; ArduPilot's folded errors stay at their floors
 
 
 @dataclass(frozen=True, slots=True)
@@ -391,6 +424,22 @@ def _cross_checks(p: Profile, bad: frozenset[str] = frozenset()) -> list[str]:
             and p.security.require_signed_commands and not p.security.key_file):
         problems.append("security: require_signed_commands = true needs key_file")
     return problems
+
+
+def profile_warnings(p: Profile) -> list[str]:
+    """Valid but likely wrong combinations: said at start-up (and by check-params), never refused."""
+    out = []
+    odo = p.odometry
+    if odo.to_autopilot and odo.frame == "start":
+        out.append("odometry.frame = 'start' with ODOMETRY to the autopilot: a restarted bridge starts a new "
+                   "frame at (0, 0, yaw 0) and ArduPilot's position runs off (it rejects the jump and fuses the "
+                   "rotated velocity); and with EK3_SRC1_YAW = 6 ArduPilot's north becomes the start heading. "
+                   "Use 'autopilot' (or leave 'auto').")
+    if odo.to_autopilot and odo.unobserved_variance is not None and odo.unobserved_variance > 1.0:
+        out.append(f"odometry.unobserved_variance = {odo.unobserved_variance:g} with ODOMETRY to the autopilot: "
+                   "ArduPilot folds it into its position and angle errors and clamps them (100 m, 1.5 rad), so it "
+                   "navigates on velocity and gyro alone; leave it unset (0.01 then) or set it small.")
+    return out
 
 
 def profile_from_dict(data: Mapping[str, Any], source: str = "<profile>") -> Profile:

@@ -56,6 +56,7 @@ import math
 from dataclasses import dataclass
 
 from sitl.config import VehicleConfig
+from sitl.extnav import ExtNavConsumer, ExtNavSettings
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.physics import PhysicsState, encoder_counts, pwm_to_command
 
@@ -168,6 +169,9 @@ class Autopilot:
         self._encoder_offset = (0, 0)  # counts at boot, per physical wheel (left, right)
         self._now_us = 0
         self._pending_requests: list[int] = []  # REQUEST_MESSAGE ids to send with the next emit
+        self.extnav = ExtNavConsumer(self._extnav_settings())
+        self._extnav_last_us: int | None = None
+        self._ahrs_yaw_rad = 0.0
 
     # ------------------------------------------------------------------ parameters
     def _default_params(self) -> dict[str, Param]:
@@ -203,7 +207,43 @@ class Autopilot:
         }
         for name, hz in rates.items():
             p[name] = Param(float(hz), _INT)
+        # External navigation from ODOMETRY (AP_VisualOdom, EKF3 sources): off unless the vehicle says so.
+        ext = v.external_nav
+        p["VISO_TYPE"] = Param(1.0 if ext else 0.0, _INT8)
+        for name in ("EK3_SRC1_POSXY", "EK3_SRC1_VELXY"):
+            p[name] = Param(6.0 if ext else 3.0, _INT8)  # 6 ExtNav, 3 GPS
+        p["EK3_SRC1_YAW"] = Param(6.0 if ext else 1.0, _INT8)  # 6 ExtNav, 1 Compass
+        p["VISO_POS_M_NSE"] = Param(0.2, _REAL)
+        p["VISO_YAW_M_NSE"] = Param(0.2, _REAL)
+        p["EK3_POS_I_GATE"] = Param(500.0, _INT)
+        p["EK3_YAW_I_GATE"] = Param(300.0, _INT)
         return p
+
+    def has_position(self) -> bool:
+        """The EKF has a position: always with its GPS (the truth here), with external navigation only
+        once it uses the companion's ODOMETRY."""
+        return not self.extnav_position_source or self.extnav.position() is not None
+
+    def heading_rad(self, s: PhysicsState) -> float:
+        """ATTITUDE.yaw: the AHRS's, or external navigation's once it is in use (EK3_SRC1_YAW = 6)."""
+        if self.extnav_yaw_source and self.extnav.using:
+            return self.extnav.yaw_cw_rad
+        return s.ahrs_yaw_rad
+
+    def _extnav_settings(self) -> ExtNavSettings:
+        return ExtNavSettings(pos_noise_m=self.param("VISO_POS_M_NSE"), yaw_noise_rad=self.param("VISO_YAW_M_NSE"),
+                              pos_gate=max(0.01 * self.param("EK3_POS_I_GATE"), 1.0),
+                              yaw_gate=max(0.01 * self.param("EK3_YAW_I_GATE"), 1.0),
+                              use_yaw=self.param("EK3_SRC1_YAW") == 6)
+
+    @property
+    def extnav_position_source(self) -> bool:
+        """The autopilot's position comes from ODOMETRY (VISO_TYPE 1, EK3_SRC1_POSXY 6)."""
+        return self.param("VISO_TYPE") == 1 and self.param("EK3_SRC1_POSXY") == 6
+
+    @property
+    def extnav_yaw_source(self) -> bool:
+        return self.param("VISO_TYPE") == 1 and self.param("EK3_SRC1_YAW") == 6
 
     def param(self, name: str) -> float:
         return self.params[name].value
@@ -299,7 +339,7 @@ class Autopilot:
         return left / scale, right / scale
 
     def update(self, now_us: int, physics: PhysicsState) -> None:
-        """Advance timers (reboot) and recompute every servo output."""
+        """Advance timers (reboot), the external-navigation estimate, and recompute every servo output."""
         self._now_us = now_us
         if self.booting_until_us is not None:
             if now_us < self.booting_until_us:
@@ -307,6 +347,14 @@ class Autopilot:
                     servo.output_pwm = 0  # a rebooting board emits no pulses
                 return
             self._finish_boot(now_us, physics)
+        if self._extnav_last_us is not None and now_us > self._extnav_last_us:
+            self.extnav.predict((now_us - self._extnav_last_us) / 1e6, physics.gyro_rad_s, physics.accel_m_s2,
+                                physics.v_m_s * physics.yaw_rate_rad_s)
+        self._extnav_last_us = now_us
+        self._ahrs_yaw_rad = physics.ahrs_yaw_rad
+        text = self.extnav.update(now_us)
+        if text is not None and self.param("VISO_TYPE") == 1:
+            self.send_text(_P.MAV_SEVERITY_INFO, text)
         left_mix, right_mix = self._skid_mix(now_us)
         for n, servo in self._servos.items():
             func = self._servo_function(n)
@@ -372,6 +420,7 @@ class Autopilot:
         self._servos = {n: _Servo() for n in range(1, NUM_SERVOS + 1)}
         self._intervals_us.clear()  # SET_MESSAGE_INTERVAL lives in RAM; SRn_ params persist
         self._next_due_us.clear()
+        self.extnav = ExtNavConsumer(self._extnav_settings())  # a new EKF: no position until ODOMETRY again
         cpr = self.vehicle.encoder_cpr
         self._encoder_offset = (
             encoder_counts(physics.left_encoder_angle_rad, cpr),
@@ -420,6 +469,9 @@ class Autopilot:
                 self._count("param_set_unknown")
         elif msg_id == _P.MAVLINK_MSG_ID_ODOMETRY:
             self.received_odometry.append(ReceivedMessage(now_us / 1e6, msg))
+            if self.param("VISO_TYPE") == 1:
+                self.extnav.settings = self._extnav_settings()
+                self.extnav.odometry(msg, now_us, self._ahrs_yaw_rad)
         elif msg_id == _P.MAVLINK_MSG_ID_HEARTBEAT:
             self._count("rx_heartbeats")
         elif msg_id == _P.MAVLINK_MSG_ID_TIMESYNC and msg.tc1 == 0:
@@ -616,6 +668,8 @@ class Autopilot:
             due = self._next_due_us.get(mid, self.boot_us)
             if now_us < due:
                 continue
+            if mid == _P.MAVLINK_MSG_ID_LOCAL_POSITION_NED and not self.has_position():
+                continue  # ArduPilot sends no local position before its EKF has one
             out.append(self.build(mid, now_us, physics))
             due += interval
             if due <= now_us:  # fell behind (a big step): skip, do not burst
@@ -658,7 +712,7 @@ class Autopilot:
             d0, d1 = self.wheel_distances_m(s)
             return m.wheel_distance_encode(boot_us, 2, [d0, d1] + [0.0] * 14)
         if msg_id == _P.MAVLINK_MSG_ID_ATTITUDE:
-            return m.attitude_encode(boot_ms, 0.0, 0.0, s.ahrs_yaw_rad, 0.0, 0.0, s.gyro_rad_s)
+            return m.attitude_encode(boot_ms, 0.0, 0.0, self.heading_rad(s), 0.0, 0.0, s.gyro_rad_s)
         if msg_id in (_P.MAVLINK_MSG_ID_RAW_IMU, _P.MAVLINK_MSG_ID_SCALED_IMU):
             # mG and mrad/s in FRD: x forward, y right, z down (gravity reads -1 g).
             ax = round(s.accel_m_s2 / 9.80665 * 1000.0)
@@ -681,6 +735,10 @@ class Autopilot:
             heading: int = round(math.degrees(s.ahrs_yaw_rad)) % 360
             return m.vfr_hud_encode(abs(s.v_m_s), abs(s.v_m_s), heading, 0, 0.0, 0.0)
         if msg_id == _P.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            ext = self.extnav.position() if self.extnav_position_source else None
+            if ext is not None:  # the EKF navigates on the companion's ODOMETRY
+                return m.local_position_ned_encode(boot_ms, ext[0], ext[1], 0.0, self.extnav.vel_n_m_s,
+                                                   self.extnav.vel_e_m_s, 0.0)
             vx = s.v_m_s * math.cos(s.yaw_rad)
             vy = s.v_m_s * math.sin(s.yaw_rad)
             return m.local_position_ned_encode(boot_ms, s.x_m, s.y_m, 0.0, vx, vy, 0.0)

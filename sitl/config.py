@@ -68,6 +68,9 @@ class VehicleConfig:
     rc_override_time_s: float = 3.0
     gcs_sysid: int = 255
     deny_wheel_distance_interval: bool = True
+    # Boot with ArduPilot set up to navigate on the companion's ODOMETRY (VISO_TYPE 1, EK3_SRC1_POSXY,
+    # VELXY and YAW = 6): LOCAL_POSITION_NED and ATTITUDE's heading then come from it (sitl/extnav.py).
+    external_nav: bool = False
     reboot_silence_s: float = 1.5
     physics_dt_s: float = 0.005
     # Stream group rates (Hz) at boot: SR0_* parameters.

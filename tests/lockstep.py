@@ -54,17 +54,28 @@ class Lockstep:
         ap_url = f"tcp:127.0.0.1:{self.emu.local_address[1]}" if autopilot_tcp else f"udpout:127.0.0.1:{ap_port}"
         if start_armed:
             self.emu.set_armed(True)
-        self.core = BridgeCore(profile)
-        ids = {"source_system": self.core.identity.own_system_id, "source_component": self.core.identity.component_id}
-        self.autopilot = Endpoint(ap_url, Link.AUTOPILOT, **ids)
-        self.gcs_endpoint = Endpoint(f"udpin:127.0.0.1:{gcs_port}", Link.GCS, **ids)
-        # The .tlog is stamped on the simulated clock, so a replay sees exactly the live timing.
-        tlog = TlogWriter(open(tlog_path, "wb"), wall_clock=lambda: self.t_s) if tlog_path else None  # noqa: SIM115
-        self.runner = Runner(self.core, self.autopilot, [self.gcs_endpoint], tlog=tlog)
+        self._ap_url, self._gcs_port = ap_url, gcs_port
+        self._start_bridge(profile, tlog_path)
         self.gcs: Any = mavutil.mavlink_connection(f"udpout:127.0.0.1:{gcs_port}", source_system=GCS_SYSID,
                                                    source_component=GCS_COMPID, dialect="ardupilotmega")
         self.view = GcsView()
         self.gcs_heartbeat()
+
+    def _start_bridge(self, profile: Profile, tlog_path: str | None = None) -> None:
+        self.core = BridgeCore(profile)
+        ids = {"source_system": self.core.identity.own_system_id, "source_component": self.core.identity.component_id}
+        self.autopilot = Endpoint(self._ap_url, Link.AUTOPILOT, **ids)
+        self.gcs_endpoint = Endpoint(f"udpin:127.0.0.1:{self._gcs_port}", Link.GCS, **ids)
+        # The .tlog is stamped on the simulated clock, so a replay sees exactly the live timing.
+        tlog = TlogWriter(open(tlog_path, "wb"), wall_clock=lambda: self.t_s) if tlog_path else None  # noqa: SIM115
+        self.runner = Runner(self.core, self.autopilot, [self.gcs_endpoint], tlog=tlog)
+
+    def restart_bridge(self, profile: Profile) -> None:
+        """The bridge process restarts (systemd after an update, a crash): it stops the rover the way a
+        SIGTERM'd bridge does, and a new one with nothing of the old one's state takes its links."""
+        self.stop()
+        self.runner.close()
+        self._start_bridge(profile)
 
     # -- the scripted ground station -------------------------------------------------------
     def gcs_heartbeat(self) -> None:

@@ -157,7 +157,7 @@ def test_no_odometry_before_wheel_data_and_none_for_targets_none() -> None:
 
 
 def test_odometry_to_both_targets_at_the_configured_rate() -> None:
-    core = _core(odometry={"targets": "both", "rate_hz": 10.0})
+    core = _core(odometry={"targets": "both", "rate_hz": 10.0, "frame": "start"})
     t, _ = _drive_twist(core, 0.3, 0.0, 1.0)
     sent = []
     now = t

@@ -10,6 +10,8 @@ It only wires small collaborators together, each a pure class with time as an ar
 - streams.StreamRequests: asks the autopilot for WHEEL_DISTANCE and the gyro, with fallbacks;
 - resets.ResetCounter: pose resets (MAV_CMD_USER_1) and reboots, as ODOMETRY.reset_counter;
 - reports.SlipMonitor / CalibrationReports: what the GCS is told about slip and calibration;
+- anchor.FrameAnchor: the frame ODOMETRY is in (the start pose's, or the autopilot's own, decided
+  before the first ODOMETRY so that a restarted bridge continues the autopilot's frame);
 - publish.OdometryPublisher: ODOMETRY at [odometry] rate_hz to [odometry] targets.
 
 Inputs are read, never consumed (the shell still forwards them to the ground stations), except
@@ -30,10 +32,12 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 from rover_bridge import frames
+from rover_bridge.estimate.anchor import FrameAnchor
 from rover_bridge.estimate.clock import AutopilotClock
 from rover_bridge.estimate.diagnostics import CalibrationReports, SlipMonitor
 from rover_bridge.estimate.ekf import IB, IV, IW, IX, IY, IYAW, NoiseModel, WheelGyroEKF
@@ -52,6 +56,8 @@ from rover_bridge.params import Profile
 log = logging.getLogger("rover_bridge.estimate.core")
 
 WHEEL_DISTANCE_ID = 9000
+LOCAL_POSITION_RATE_HZ = 2.0  # asked for when ODOMETRY is in the autopilot's frame: enough to anchor
+POSE_HISTORY = 128  # filter poses kept until anchored: several seconds at the sensors' rates
 SILENCE_S = 0.5  # no measurement at all for this long: the next one restarts the motion (see _after_silence)
 GYRO_MAX_RAD_S = 50.0  # beyond any rover: such a "rate" is corrupt data, not a measurement
 GYRO_FOR_SLIP_MAX_AGE_S = 0.25
@@ -82,7 +88,7 @@ class EstimateCore:
     # What handle() may read from the autopilot link (BridgeCore decodes nothing else from it); of the
     # gyro messages only those `gyro_reads` names at the time.
     AUTOPILOT_READS = frozenset({"COMMAND_LONG", "HEARTBEAT", "WHEEL_DISTANCE", "ATTITUDE", "SCALED_IMU", "RAW_IMU",
-                                 "SYSTEM_TIME", "COMMAND_ACK"})
+                                 "SYSTEM_TIME", "COMMAND_ACK", "LOCAL_POSITION_NED"})
     ALL_GYRO_IDS = ALL_GYRO_IDS
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter) -> None:
@@ -106,11 +112,16 @@ class EstimateCore:
         self.slip = SlipMonitor(reporter)
         self.calibration_reports = CalibrationReports(reporter, est.calibrate)
         self.publisher = OdometryPublisher(profile.odometry)
+        self.frame = FrameAnchor(profile.odometry, reporter)
         gyro_name = self.gyro.request_name
-        self.streams = StreamRequests(
-            [Stream("WHEEL_DISTANCE", WHEEL_DISTANCE_ID, mavlink.MAV_DATA_STREAM_EXTRA1),
-             Stream(gyro_name.upper(), *GYRO_MESSAGES[gyro_name])],
-            est.stream_rate_hz, identity, reporter)
+        streams = [Stream("WHEEL_DISTANCE", WHEEL_DISTANCE_ID, mavlink.MAV_DATA_STREAM_EXTRA1),
+                   Stream(gyro_name.upper(), *GYRO_MESSAGES[gyro_name])]
+        if self.frame.enabled:
+            # Anchoring needs the autopilot's position; before it has one (a cold start) it sends none.
+            streams.append(Stream("LOCAL_POSITION_NED", mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+                                  mavlink.MAV_DATA_STREAM_POSITION, rate_hz=LOCAL_POSITION_RATE_HZ,
+                                  check_rate=False))
+        self.streams = StreamRequests(streams, est.stream_rate_hz, identity, reporter)
         self.raw_pose = Pose2D()
         self._counters: dict[str, int] = {
             "gyro_samples": 0,
@@ -124,6 +135,7 @@ class EstimateCore:
         self._gyro_last: tuple[float, float] | None = None  # (now_s, omega)
         self._have_wheels = False
         self._last_wheel_fused_s: float | None = None
+        self._recent: deque[tuple[float, Pose2D]] = deque(maxlen=POSE_HISTORY)  # (filter time, pose)
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -200,7 +212,10 @@ class EstimateCore:
         if mtype == "WHEEL_DISTANCE":
             out += self._handle_wheels(msg, now_s)
         elif mtype == "ATTITUDE":
+            self.frame.on_attitude(msg.time_boot_ms * 1e-3, float(msg.yaw))
             out += self._handle_gyro("attitude", msg.time_boot_ms * 1e-3, float(msg.yawspeed), now_s)
+        elif mtype == "LOCAL_POSITION_NED":
+            self.frame.on_local_position(msg.time_boot_ms * 1e-3, float(msg.x), float(msg.y))
         elif mtype == "SCALED_IMU":
             out += self._handle_gyro("scaled_imu", msg.time_boot_ms * 1e-3, msg.zgyro * 1e-3, now_s)
         elif mtype == "RAW_IMU":
@@ -210,13 +225,16 @@ class EstimateCore:
             self._stamp(msg.time_boot_ms * 1e-3, now_s)
         elif mtype == "COMMAND_ACK":
             return self.streams.handle_ack(msg, now_s)
+        self._remember_pose()
         return Reaction(out=tuple(out)) if out else NOTHING
 
     def tick(self, now_s: float) -> list[Outgoing]:
         self.gyro.update_reads(now_s)  # a source that fell silent: read the others again
         out = self.streams.pump(now_s)
         out += self.streams.check_rates(now_s)
-        if self._have_wheels and self.publisher.due(now_s):
+        if not self.frame.ready:
+            out += self.frame.decide(now_s, self._pose_at_stamp if self._have_wheels else None)
+        if self._have_wheels and self.frame.ready and self.publisher.due(now_s):
             out += self._odometry(now_s)
         st = self.state if self.calibration_reports.enabled and self._have_wheels else None
         if st is not None:
@@ -227,7 +245,8 @@ class EstimateCore:
         deadlines = [now_s + 1.0, *self.streams.deadlines(now_s)]
         odom = self.publisher.deadline_s(now_s) if self._have_wheels else None
         if odom is not None:
-            deadlines.append(odom)
+            # Held back until the frame is decided: look again when the wait for the autopilot ends.
+            deadlines.append(odom if self.frame.ready else max(odom, now_s + min(0.1, self.frame.timeout_s)))
         if self.calibration_reports.next_s is not None:
             deadlines.append(self.calibration_reports.next_s)
         return min(deadlines)
@@ -251,14 +270,15 @@ class EstimateCore:
             or msg.target_system != self.identity.own_system_id
         ):
             return NOTHING
-        pose = requested_pose(msg, self.ekf.pose)
+        # In the published frame (the start frame, or the autopilot's once anchored), as ODOMETRY is.
+        pose = requested_pose(msg, self.frame.published(self.ekf.pose))
         out: list[Outgoing] = []
         if pose is None:
             self.resets.denied()
             result = mavlink.MAV_RESULT_DENIED
         else:
             result = mavlink.MAV_RESULT_ACCEPTED
-            out = self.reset_pose(pose, now_s)
+            out = self.reset_pose(self.frame.internal(pose), now_s)
         ack = mavlink.MAVLink_command_ack_message(
             command=msg.command, result=result, progress=0, result_param2=0,
             target_system=msg.get_srcSystem(), target_component=msg.get_srcComponent())
@@ -374,7 +394,30 @@ class EstimateCore:
         """ODOMETRY for the estimate extrapolated to now_s (see rover_bridge.estimate.publish)."""
         x, P = self.ekf.extrapolate(self.clock.autopilot_time_s(now_s))  # noqa: N806 - a covariance
         fresh = self._last_wheel_fused_s is not None and now_s - self._last_wheel_fused_s <= WHEELS_STALE_S
-        return self.publisher.message(x, P, self.clock.time_usec(now_s), self.resets.value, quality(P, fresh))
+        return self.publisher.message(x, P, self.clock.time_usec(now_s), self.resets.value, quality(P, fresh),
+                                      self.frame.anchor)
+
+    def _pose_at_stamp(self, stamp_s: float) -> Pose2D:
+        """The estimate's pose at an autopilot stamp: extrapolated ahead of the filter's time, interpolated
+        in the recent history behind it (a LOCAL_POSITION_NED half a second old on a moving rover)."""
+        t = self.ekf.time_s
+        if t is None or stamp_s >= t or not self._recent:
+            x, _ = self.ekf.extrapolate(stamp_s)
+            return Pose2D(float(x[IX]), float(x[IY]), float(x[IYAW]))
+        recent = self._recent
+        if stamp_s <= recent[0][0]:
+            return recent[0][1]
+        after = next(i for i, (ts, _) in enumerate(recent) if ts >= stamp_s)
+        (t0, a), (t1, b) = recent[after - 1], recent[after]
+        f = (stamp_s - t0) / (t1 - t0) if t1 > t0 else 1.0
+        return Pose2D(a.x_m + f * (b.x_m - a.x_m), a.y_m + f * (b.y_m - a.y_m),
+                      wrap_angle(a.yaw_rad + f * wrap_angle(b.yaw_rad - a.yaw_rad)))
+
+    def _remember_pose(self) -> None:
+        """Until the frame is anchored: the filter's pose at its time, for _pose_at_stamp."""
+        t = self.ekf.time_s
+        if not self.frame.ready and t is not None and (not self._recent or t > self._recent[-1][0]):
+            self._recent.append((t, self.ekf.pose))
 
     def _odometry(self, now_s: float) -> list[Outgoing]:
         msg = self.odometry_message(now_s)

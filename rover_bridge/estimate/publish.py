@@ -1,13 +1,18 @@
 """ODOMETRY (331) from the filter's state and covariance, on a fixed rate grid (pure).
 
 - time_usec: the caller's stamp on the autopilot's boot clock (rover_bridge.estimate.clock).
-- frame_id MAV_FRAME_LOCAL_FRD (origin and axes of the start pose), child_frame_id MAV_FRAME_BODY_FRD;
-  x forward, y right, z = 0; q from the FRD (clockwise) yaw; vx forward, vy = 0, vz = 0, yawspeed CW+.
+- frame_id MAV_FRAME_LOCAL_FRD, child_frame_id MAV_FRAME_BODY_FRD (the only frames ArduPilot takes as
+  external navigation). The pose is in the start frame (x forward of the start pose, y right) or, with
+  an anchor (rover_bridge.estimate.anchor), in the autopilot's local frame (x north, y east, yaw from
+  north: an FRD frame whose forward axis is north); z = 0; q from the clockwise yaw; vx forward,
+  vy = 0, vz = 0, yawspeed CW+ (body frame either way).
 - covariances: the filter's x, y, yaw, v, yaw-rate blocks with the FRD sign flips
   (frames.covariance_frd_from_flu); vy has a finite variance (LATERAL_SIGMA_* below: the wheels do
   not side-slip much, but not never); z, roll, pitch and their rates are unobserved: each gets
-  [odometry] unobserved_variance (default 1e4 m^2 or rad^2, i.e. sigma 100: "unknown", as a number
-  rather than the NaN-first-element convention, which many receivers mishandle).
+  [odometry] unobserved_variance (unset: 1e4 m^2 or rad^2 for ground stations, sigma 100: "unknown",
+  as a number rather than the NaN-first-element convention, which many receivers mishandle; 0.01
+  when ODOMETRY goes to the autopilot, which folds z into its one position error and roll and pitch
+  into its one angle error). With an anchor the x, y block is rotated into the published frame.
 - estimator_type MAV_ESTIMATOR_TYPE_UNKNOWN: the enum has no wheel/inertial dead-reckoning member;
   NAIVE claims no covariance (PX4 then ignores the covariance) and VIO claims a camera, both false.
 - quality: 100 / (1 + sigma_xy / QUALITY_POS_M + sigma_yaw / QUALITY_YAW_RAD), rounded, clamped to
@@ -25,6 +30,7 @@ import numpy as np
 
 from rover_bridge import frames
 from rover_bridge.estimate.ekf import IV, IW, IX, IY, IYAW, Mat, Vec
+from rover_bridge.frames import LocalAnchor
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.wire import Link
 from rover_bridge.params import OdometryParams
@@ -65,12 +71,21 @@ def quality(P: np.ndarray, wheels_fresh: bool) -> int:
     return max(1, min(100, round(q)))
 
 
+def _rotate_xy(cov: list[list[float]], angle_rad: float) -> list[list[float]]:
+    """T C T' with T the rotation of the first two axes by angle_rad (x toward y), others unchanged."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    t = [[1.0 if i == j else 0.0 for j in range(6)] for i in range(6)]
+    t[0][0], t[0][1], t[1][0], t[1][1] = c, -s, s, c
+    tc = [[sum(t[i][k] * cov[k][j] for k in range(6)) for j in range(6)] for i in range(6)]
+    return [[sum(tc[i][k] * t[j][k] for k in range(6)) for j in range(6)] for i in range(6)]
+
+
 class OdometryPublisher:
     """Where ODOMETRY goes, when the next one is due, and how one is packed."""
 
     def __init__(self, params: OdometryParams) -> None:
         self.links = TARGET_LINKS[params.targets]
-        self.unobserved_variance = params.unobserved_variance
+        self.unobserved_variance = params.resolved_unobserved_variance
         self.period_s = 1.0 / params.rate_hz
         self.next_s: float | None = None
         self.sent = 0
@@ -90,8 +105,10 @@ class OdometryPublisher:
             return None
         return now_s if self.next_s is None else self.next_s
 
-    def message(self, x: Vec, P: Mat, time_usec: int, reset_counter: int, quality_0_100: int) -> MAVLinkMessage:
-        """ODOMETRY for state x with covariance P (rover-bridge's FLU convention) at time_usec."""
+    def message(self, x: Vec, P: Mat, time_usec: int, reset_counter: int, quality_0_100: int,
+                anchor: LocalAnchor | None = None) -> MAVLinkMessage:
+        """ODOMETRY for state x with covariance P (rover-bridge's FLU convention) at time_usec, in the start
+        frame or, with `anchor`, in the autopilot's local frame."""
         big = self.unobserved_variance
         v, w = float(x[IV]), float(x[IW])
         pose_flu = [[0.0] * 6 for _ in range(6)]
@@ -107,16 +124,23 @@ class OdometryPublisher:
         vel_flu[1][1] = (
             LATERAL_SIGMA_M_S + LATERAL_SIGMA_PER_M_S * abs(v) + LATERAL_SIGMA_PER_RAD_S * abs(w)
         ) ** 2
-        pose_cov = upper_triangle_21(frames.covariance_frd_from_flu(pose_flu))
+        pose_frd = frames.covariance_frd_from_flu(pose_flu)
+        if anchor is None:
+            px, py = float(x[IX]), frames.y_frd_from_y_flu(float(x[IY]))
+            yaw_frd = frames.yaw_frd_from_yaw_flu(float(x[IYAW]))
+        else:
+            ned = anchor.to_ned(float(x[IX]), float(x[IY]), float(x[IYAW]))
+            px, py, yaw_frd = ned.north_m, ned.east_m, ned.yaw_cw_rad
+            pose_frd = _rotate_xy(pose_frd, anchor.rotation_cw_rad)
+        pose_cov = upper_triangle_21(pose_frd)
         vel_cov = upper_triangle_21(frames.covariance_frd_from_flu(vel_flu))
-        yaw_frd = frames.yaw_frd_from_yaw_flu(float(x[IYAW]))
         self.sent += 1
         return mavlink.MAVLink_odometry_message(
             time_usec=time_usec,
             frame_id=mavlink.MAV_FRAME_LOCAL_FRD,
             child_frame_id=mavlink.MAV_FRAME_BODY_FRD,
-            x=float(x[IX]),
-            y=frames.y_frd_from_y_flu(float(x[IY])),
+            x=px,
+            y=py,
             z=0.0,
             q=list(frames.quaternion_from_yaw(yaw_frd)),
             vx=v,

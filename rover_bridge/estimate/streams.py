@@ -46,6 +46,8 @@ class Stream:
     arrivals: int = 0
     last_slow_report_s: float = -math.inf
     measured_hz: float | None = None
+    rate_hz: float | None = None  # None: the requests' common rate ([estimator] stream_rate_hz)
+    check_rate: bool = True  # False for a stream the autopilot may rightly not send (no position yet)
 
 
 class StreamRequests:
@@ -134,7 +136,7 @@ class StreamRequests:
             hz = s.arrivals / (now_s - s.window_start_s)
             s.measured_hz = hz
             s.window_start_s, s.arrivals = now_s, 0
-            if hz >= SLOW_FRACTION * wanted:
+            if hz >= SLOW_FRACTION * wanted or not s.check_rate:
                 continue
             self.counters["stream_slow"] += 1
             out.append(self._data_stream_request(s.group))  # ask again: a GCS may have lowered the group
@@ -158,7 +160,8 @@ class StreamRequests:
             out.append(pending.sent_s + STREAM_ACK_TIMEOUT_S)
         elif any(s.state == "queued" for s in self.streams):
             out.append(now_s)
-        out += [s.window_start_s + RATE_WINDOW_S for s in self.streams if s.window_start_s is not None]
+        out += [s.window_start_s + RATE_WINDOW_S for s in self.streams
+                if s.window_start_s is not None and s.check_rate]
         return out
 
     # ------------------------------------------------------------------ messages
@@ -175,7 +178,7 @@ class StreamRequests:
         sysid, compid = self._target()
         msg = mavlink.MAVLink_command_long_message(
             target_system=sysid, target_component=compid, command=mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
-            confirmation=s.attempts - 1, param1=float(s.msg_id), param2=float(1e6 / self.rate_hz),
+            confirmation=s.attempts - 1, param1=float(s.msg_id), param2=float(1e6 / (s.rate_hz or self.rate_hz)),
             param3=0.0, param4=0.0, param5=0.0, param6=0.0, param7=0.0)
         return self._to_autopilot(msg)
 
@@ -183,11 +186,11 @@ class StreamRequests:
         s.state = "requested"
         s.window_start_s, s.arrivals = now_s + RATE_GRACE_S, 0
         self.counters["stream_fallbacks"] += 1
-        return [self._data_stream_request(s.group)]
+        return [self._data_stream_request(s.group, s.rate_hz)]
 
-    def _data_stream_request(self, group: int) -> Outgoing:
+    def _data_stream_request(self, group: int, rate_hz: float | None = None) -> Outgoing:
         sysid, compid = self._target()
         msg = mavlink.MAVLink_request_data_stream_message(
             target_system=sysid, target_component=compid, req_stream_id=group,
-            req_message_rate=max(1, round(self.rate_hz)), start_stop=1)
+            req_message_rate=max(1, round(rate_hz or self.rate_hz)), start_stop=1)
         return self._to_autopilot(msg)

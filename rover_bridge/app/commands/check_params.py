@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from rover_bridge.errors import ConfigError
-from rover_bridge.params import load_profile, markdown_table, profile_to_toml
+from rover_bridge.params import load_profile, markdown_table, profile_to_toml, profile_warnings
 
 NAME = "check-params"
 HELP = "validate a robot profile (TOML) and print it fully resolved"
@@ -25,5 +25,7 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(["check-params: give a profile FILE (or --table)"])
     profile = load_profile(args.file)  # ConfigError -> cli prints every problem, exit 2
     print(f"# {args.file}: OK, fully resolved (defaults filled in)")
+    for warning in profile_warnings(profile):
+        print(f"# warning: {warning}")
     print(profile_to_toml(profile), end="")
     return 0

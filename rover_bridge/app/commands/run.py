@@ -21,7 +21,7 @@ from rover_bridge.errors import ConfigError
 from rover_bridge.mavlink.links import Endpoint, check_url
 from rover_bridge.mavlink.signing import SignatureVerifier, load_key, signing_timestamp
 from rover_bridge.mavlink.wire import Link
-from rover_bridge.params import load_profile
+from rover_bridge.params import load_profile, profile_warnings
 
 NAME = "run"
 HELP = "bridge an autopilot and ground stations: velocity requests in, wheel overrides and ODOMETRY out"
@@ -63,6 +63,8 @@ def main(args: argparse.Namespace) -> int:
         problems.append(f"--duration: expected a positive number of seconds, got {args.duration}")
     if problems:
         raise ConfigError(problems)
+    for warning in profile_warnings(profile):
+        log.warning("profile: %s", warning)
     core = BridgeCore(profile)
     own_sys, own_comp = core.identity.own_system_id, core.identity.component_id
     autopilot = Endpoint(args.autopilot, Link.AUTOPILOT, source_system=own_sys, source_component=own_comp)
