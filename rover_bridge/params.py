@@ -160,6 +160,10 @@ class SafetyParams:
         "and holds neutral; it drives again only on a fresh request after the mode has changed. ArduPilot "
         "Rover: 4 = HOLD (what a GCS's Hold, Pause and Stop buttons select); PX4 Hold is 50593792. [] to "
         "disable.", lo=0, hi=4294967295)
+    loop_watchdog_s: float = _p(
+        0.7, "If the bridge's loop has not completed a pass for this long (a hang), a separate thread sends "
+        "neutral and release and ends the process with exit 1 (systemd restarts it); 0 disables. Keep it "
+        "below the unit's WatchdogSec.", unit="s", lo=0.0, hi=30.0)
     stop_confirm_timeout_s: float = _p(
         0.3, "On exit, after neutral and release, wait at most this long for the autopilot's proof that it "
         "processed them (its answer to a TIMESYNC sent after them; resent every 0.1 s), then close the link.",

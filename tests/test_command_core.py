@@ -565,7 +565,7 @@ def test_shutdown_sends_neutral_then_release_on_ch1_8() -> None:
     assert chans[1] == [0, IGNORE, 0, IGNORE, IGNORE, IGNORE, IGNORE, IGNORE] + [0] * 10
     assert all((o.src_system, o.src_component, o.dest) == (255, 191, Link.AUTOPILOT) for o in out[:3])
     assert out[2].msg.tc1 == 0  # a TIMESYNC request: the autopilot answers it after parsing the two above
-    assert texts(out) == ["RB: stopping, neutral and release sent"]
+    assert texts(out) == ["RB: stopping, neutral sent, confirming"]
     assert state(rig) is CommandState.STOPPING and not rig.core.stop_settled
     # The answer (tc1 set, ts1 echoed) confirms the stop; nothing is sent after it.
     answer = Rig.wire(rig.ap, mavlink.MAVLink_timesync_message(tc1=123, ts1=out[2].msg.ts1))

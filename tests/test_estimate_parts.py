@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rover_bridge.estimate.clock import CLOCK_DRIFT, AutopilotClock
+from rover_bridge.estimate.clock import CLOCK_DRIFT, JUMP, REBOOT, AutopilotClock, Stamp
 from rover_bridge.estimate.diagnostics import (
     SLIP_MIN_INTERVALS,
     SLIP_REPORT_INTERVAL_S,
@@ -57,10 +57,37 @@ def test_clock_offset_creeps_up_at_most_at_the_drift_rate() -> None:
 
 def test_clock_restarted_by_stamps_jumping_back() -> None:
     clock = AutopilotClock()
-    clock.observe(50.0, 150.0)
-    assert clock.observe(49.8, 150.1) is False  # reordering, within the window
-    assert clock.observe(0.2, 151.0) is True  # a reboot
+    clock.observe(50.0, 150.0, "wheels")
+    assert clock.observe(49.8, 150.1, "wheels").event is None  # reordering, within the window
+    assert clock.observe(0.2, 151.0, "wheels") == Stamp(0.2, REBOOT)  # a reboot
     assert clock.offset_s == pytest.approx(150.8)
+    assert clock.observe(0.25, 151.05, "gyro").event is None  # the other streams restarted with it
+
+
+def test_clock_re_bases_one_stream_on_another_epoch_and_back() -> None:
+    clock = AutopilotClock()
+    for i in range(10):
+        clock.observe(10.0 + 0.05 * i, 110.0 + 0.05 * i, "gyro")
+    unix = 1.7e9
+    first = clock.observe(unix + 10.5, 110.5, "wheels")  # this stream now counts UNIX time
+    assert first.event == JUMP and first.t_s == pytest.approx(10.5) and first.jump_s == pytest.approx(unix)
+    assert clock.observe(unix + 10.55, 110.55, "wheels") == Stamp(pytest.approx(10.55))  # re-based, quietly
+    assert clock.observe(10.55, 110.55, "gyro").event is None  # the others are untouched
+    assert clock.offset_s == pytest.approx(100.0)
+    back = clock.observe(10.6, 110.6, "wheels")  # and back to boot time
+    assert back.event == JUMP and back.t_s == pytest.approx(10.6)
+    assert clock.observe(10.65, 110.65, "wheels").event is None
+
+
+def test_clock_stamps_out_of_any_range_are_events_not_errors() -> None:
+    clock = AutopilotClock()
+    clock.observe(1.0, 101.0)
+    assert clock.observe(math.nan, 101.1).event == JUMP
+    assert clock.observe((2**64 - 1) * 1e-6, 101.2).event == JUMP
+    assert clock.time_usec(101.3) == pytest.approx(1.3e6, abs=5e3)  # (float precision of a 1.8e13 s stamp)
+    huge = AutopilotClock()
+    huge.observe(0.0, 1e15)
+    assert huge.time_usec(2e15) == 2**64 - 1 and AutopilotClock().time_usec(-5.0) == 0  # clamped to uint64
 
 
 # ------------------------------------------------------------------------------------ streams

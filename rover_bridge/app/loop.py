@@ -22,12 +22,15 @@ from collections.abc import Callable, Sequence
 from typing import BinaryIO
 
 from rover_bridge.app.composition import BridgeCore
-from rover_bridge.mavlink.dialect import MAVLinkMessage
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.links import Endpoint, RawFrame
 from rover_bridge.mavlink.signing import carries_signature
 from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 
 log = logging.getLogger("rover_bridge.app.loop")
+
+# What packing a message with an out-of-range field raises (pymavlink's struct packing).
+PACK_ERRORS = (struct.error, OverflowError, ValueError, TypeError)
 
 # Longest select() sleep: bounds how late a stop request or a missed deadline can be noticed.
 MAX_SLEEP_S = 0.05
@@ -71,6 +74,9 @@ class Runner:
         self.backlog = False
         self.next_deadline_s = 0.0
         self.passes = 0
+        self.pack_errors = 0
+        self._emergency_frames = b""
+        self._emergency_key: tuple[int | None, int] | None = None
         # The autopilot's telemetry is read in batches (mavlink.autopilot_batch_ms): after a read its
         # link is not watched until the batch time has passed; every wake-up still reads it. Its
         # frames carry their own timestamps, which is what the estimator runs on, so a batch changes
@@ -136,7 +142,14 @@ class Runner:
         for item in out:
             dests = [self.autopilot] if item.dest is Link.AUTOPILOT else self.gcs
             for ep in dests:
-                frame = ep.send(item.msg, item.src_system, item.src_component)
+                try:
+                    frame = ep.send(item.msg, item.src_system, item.src_component)
+                except PACK_ERRORS as exc:
+                    # The core clamps what it packs from outside values; this is the net under that: one
+                    # message lost and counted, never an exception out of the loop.
+                    self.pack_errors += 1
+                    log.error("could not pack %s: %s", item.msg.get_type(), exc)
+                    break
                 if self.tlog is not None and ep is dests[0]:
                     self.tlog.write(frame)
 
@@ -160,16 +173,38 @@ class Runner:
                 if ep.fileno() is None or ep.fileno() in readable or (resting and ep is self.autopilot)]
 
     def run(self, should_stop: Callable[[], bool], clock: Callable[[], float] = time.monotonic,
-            wake_fd: int | None = None) -> None:
-        """Serve until `should_stop()`; the caller then calls `stop_safely` (also on exceptions)."""
+            wake_fd: int | None = None, on_pass: Callable[[float], None] | None = None) -> None:
+        """Serve until `should_stop()`; the caller then calls `stop_safely` (also on exceptions).
+        `on_pass(now)` runs after every pass (the watchdog pings and the stop guard's liveness)."""
         extra = [wake_fd] if wake_fd is not None else []
         ready: list[Endpoint] | None = None
         while not should_stop():
             self.passes += 1
-            self.step(clock(), RUN_BATCH, ready)
+            now = clock()
+            self.step(now, RUN_BATCH, ready)
+            self._refresh_emergency_frames()
+            if on_pass is not None:
+                on_pass(now)
             ready = None if self.backlog else self.wait(clock, extra)
             if wake_fd is not None:
                 _drain(wake_fd)
+
+    @property
+    def emergency_frames(self) -> bytes:
+        """The stop, packed for the autopilot link (rover_bridge.app.guard sends it if the loop is stuck)."""
+        return self._emergency_frames
+
+    def _refresh_emergency_frames(self) -> None:
+        ident = self.core.identity
+        key = (ident.vehicle_system_id, ident.autopilot_component_id)
+        if key == self._emergency_key:
+            return
+        self._emergency_key = key
+        frames = []
+        for item in self.core.command.emergency_stop():
+            mav = mavlink.MAVLink(None, srcSystem=item.src_system, srcComponent=item.src_component)
+            frames.append(bytes(item.msg.pack(mav)))
+        self._emergency_frames = b"".join(frames)
 
     def begin_stop(self, now_s: float) -> None:
         """Send the core's safe-stop sequence (neutral, release, the probe that confirms them). The

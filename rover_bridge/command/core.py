@@ -91,7 +91,7 @@ STATE_TEXT = {
     CommandState.DISARMED: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot disarmed, neutral"),
     CommandState.REFUSED: (mavlink.MAV_SEVERITY_ERROR, "RB: DO_SET_SERVO refused, neutral"),
     CommandState.HOLD: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot in HOLD, braking, then neutral"),
-    CommandState.STOPPING: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopping, neutral and release sent"),
+    CommandState.STOPPING: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopping, neutral sent, confirming"),
     CommandState.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, autopilot confirmed release"),
 }
 STOP_UNCONFIRMED = (mavlink.MAV_SEVERITY_CRITICAL, "RB: stop NOT confirmed by the autopilot")
@@ -105,6 +105,7 @@ _OVER = (CommandState.STOPPING, CommandState.STOPPED)
 # handled. ts1 carries this tag plus the attempt number, so the answer is recognisably ours.
 STOP_PROBE_TAG = 0x5242_5354 << 32  # "RBST"
 STOP_RESEND_S = 0.1
+EMERGENCY_PROBE_TS1 = STOP_PROBE_TAG + 0xFFFF_FFFF  # the stop guard's probe (never a normal attempt number)
 # A ground station's request for a stop mode stops the rover at once; the autopilot's heartbeat (1 Hz,
 # possibly one already in flight) takes over after this long unless the autopilot refused the mode.
 HOLD_ANTICIPATION_S = 1.5
@@ -258,6 +259,20 @@ class CommandCore:
         self.last_wheel_pwm = self.outputs.neutral
         self._stop_sent_s = now_s
         self._count("stop.sent")
+        return [self._to_autopilot(m) for m in msgs]
+
+    def emergency_stop(self) -> list[Outgoing]:
+        """The stop as another thread sends it when the loop is stuck (rover_bridge.app.guard): neutral,
+        release, and a probe with EMERGENCY_PROBE_TS1; the core's state is not touched. Empty while the
+        vehicle is unknown."""
+        vehicle = self.identity.vehicle_system_id
+        if vehicle is None:
+            return []
+        target = (vehicle, self.identity.autopilot_component_id)
+        msgs = self.outputs.command(self.outputs.neutral, *target)
+        if self.outputs.mode == "rc_override":
+            msgs += self.outputs.release(*target)
+        msgs.append(mavlink.MAVLink_timesync_message(tc1=0, ts1=EMERGENCY_PROBE_TS1))
         return [self._to_autopilot(m) for m in msgs]
 
     def _stop_tick(self, now_s: float) -> list[Outgoing]:

@@ -5,20 +5,44 @@ The filter runs on the autopilot's own stamps (WHEEL_DISTANCE.time_usec, ATTITUD
 network and scheduling jitter cannot shift the gyro against the wheels. Only publishing needs
 "now" on that clock: one offset, the smallest arrival latency seen over every stream, maps the
 caller's now_s onto it. The offset may creep up by CLOCK_DRIFT seconds per second, so an
-autopilot clock that runs slow against ours is followed; stamps jumping back by more than
-REORDER_WINDOW_S (a reboot) re-learn it.
+autopilot clock that runs slow against ours is followed.
 
 One mapping for all streams, not one per stream: separate offsets differ by arrival jitter (tens
 of ms on a busy machine), which shifted the gyro against the wheels and cost degrees of heading
 at every change of turn rate.
+
+Discontinuities (never integrated step by step):
+- every stream's stamps jumping back by more than REORDER_WINDOW_S is an autopilot reboot: the
+  offset is learnt again ("reboot");
+- one stream's stamps far from where the clock says now is (more than JUMP_S ahead, or behind
+  without going back on themselves, or returning from such a jump): that stream changed its epoch
+  (MAVLink's time_usec is "UNIX epoch or time since boot", and some autopilots switch a stream to
+  UNIX time when GPS time arrives) or sent garbage. Its stamps are re-based onto the boot clock
+  from then on ("jump"); the other streams and the filter do not notice.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 # s/s: how fast the latency offset may creep up. Generous, so a sender's clock that runs slow
 # against ours (an emulator behind real time on a loaded machine) is followed within seconds.
 CLOCK_DRIFT = 0.05
 REORDER_WINDOW_S = 0.5  # stamps further back than this are a restarted clock, not reordering
+JUMP_S = 5.0  # a stamp this far from the clock's now (no link is that late) is another epoch
+
+REBOOT = "reboot"
+JUMP = "jump"
+
+
+@dataclass(frozen=True, slots=True)
+class Stamp:
+    """A measurement's time on the boot clock, and what the clock made of it."""
+
+    t_s: float
+    event: str | None = None  # None, REBOOT or JUMP
+    jump_s: float = 0.0  # JUMP: how far this stream's stamps moved (its new shift minus the old)
 
 
 class AutopilotClock:
@@ -26,23 +50,47 @@ class AutopilotClock:
 
     def __init__(self) -> None:
         self.offset_s: float | None = None
-        self._last_stamp_s: float | None = None
         self._last_now_s = 0.0
+        self._last_stamp_s: dict[str, float] = {}  # per stream, raw (as sent)
+        self._shift_s: dict[str, float] = {}  # per stream: raw stamp - boot clock time
 
-    def observe(self, stamp_s: float, now_s: float) -> bool:
-        """Learn from one stamp that arrived at now_s; True when the stamps jumped back (the autopilot
-        restarted its clock: the offset is learnt again from this stamp)."""
-        restarted = self._last_stamp_s is not None and stamp_s < self._last_stamp_s - REORDER_WINDOW_S
-        if restarted:
-            self.offset_s = None
-        self._last_stamp_s = stamp_s
-        latency = now_s - stamp_s
+    def observe(self, stamp_s: float, now_s: float, stream: str = "") -> Stamp:
+        """One stamp of `stream` that arrived at now_s: its time on the boot clock (see the module doc)."""
+        if not math.isfinite(stamp_s):
+            return Stamp(self.autopilot_time_s(now_s), JUMP)
+        last = self._last_stamp_s.get(stream)
+        self._last_stamp_s[stream] = stamp_s
+        shift = self._shift_s.get(stream, 0.0)
+        event: str | None = None
+        jump = 0.0
+        if self.offset_s is not None:
+            boot_now = now_s - self.offset_s
+            went_back = last is not None and stamp_s < last - REORDER_WINDOW_S
+            if went_back and shift != 0.0 and abs(stamp_s - boot_now) < JUMP_S:
+                event, jump, shift = JUMP, -shift, 0.0  # back from another epoch to the boot clock
+            elif went_back:
+                event = REBOOT  # the autopilot restarted its clock: every stream starts again
+                self.offset_s = None
+                self._shift_s.clear()
+                self._last_stamp_s = {stream: stamp_s}
+                shift = 0.0
+            elif abs(stamp_s - shift - boot_now) > JUMP_S:
+                jump = stamp_s - shift - boot_now  # this stream is on another epoch (or garbage)
+                event, shift = JUMP, shift + jump
+            if shift != 0.0 or stream in self._shift_s:
+                self._shift_s[stream] = shift
+        t = stamp_s - shift
+        latency = now_s - t
         if self.offset_s is None:
             self.offset_s = latency
         else:
             self.offset_s = min(self.offset_s + CLOCK_DRIFT * max(0.0, now_s - self._last_now_s), latency)
         self._last_now_s = now_s
-        return restarted
+        return Stamp(t, event, jump)
+
+    def rebase(self, stamp_s: float, stream: str = "") -> float:
+        """A stamp of `stream` on the boot clock, without learning from it (see observe)."""
+        return stamp_s - self._shift_s.get(stream, 0.0)
 
     def autopilot_time_s(self, now_s: float) -> float:
         """now_s on the autopilot's boot clock; now_s itself until the first stamp has arrived."""
@@ -50,5 +98,12 @@ class AutopilotClock:
         return now_s if offset is None else now_s - offset
 
     def time_usec(self, now_s: float) -> int:
-        """autopilot_time_s in whole microseconds (ODOMETRY.time_usec)."""
-        return max(0, round(self.autopilot_time_s(now_s) * 1e6))
+        """autopilot_time_s in whole microseconds, clamped to ODOMETRY.time_usec's uint64 range."""
+        t = self.autopilot_time_s(now_s)
+        if not t > 0.0:  # also NaN
+            return 0
+        return min(UINT64_MAX, round(t * 1e6)) if t < UINT64_MAX_S else UINT64_MAX
+
+
+UINT64_MAX = 2**64 - 1
+UINT64_MAX_S = UINT64_MAX * 1e-6

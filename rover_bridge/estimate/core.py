@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 from rover_bridge import frames
 from rover_bridge.estimate.anchor import FrameAnchor
-from rover_bridge.estimate.clock import AutopilotClock
+from rover_bridge.estimate.clock import JUMP, REBOOT, AutopilotClock
 from rover_bridge.estimate.diagnostics import CalibrationReports, SlipMonitor
 from rover_bridge.estimate.ekf import IB, IV, IW, IX, IY, IYAW, NoiseModel, WheelGyroEKF
 from rover_bridge.estimate.gyro import ALL_GYRO_IDS, GYRO_MESSAGES, GyroSelector
@@ -61,6 +61,7 @@ POSE_HISTORY = 128  # filter poses kept until anchored: several seconds at the s
 SILENCE_S = 0.5  # no measurement at all for this long: the next one restarts the motion (see _after_silence)
 GYRO_MAX_RAD_S = 50.0  # beyond any rover: such a "rate" is corrupt data, not a measurement
 GYRO_FOR_SLIP_MAX_AGE_S = 0.25
+GYRO_WINDOW_MAX = 64  # gyro samples kept between two wheel steps (the slip test's window)
 WHEELS_STALE_S = 1.0
 
 
@@ -123,7 +124,9 @@ class EstimateCore:
                                   check_rate=False))
         self.streams = StreamRequests(streams, est.stream_rate_hz, identity, reporter)
         self.raw_pose = Pose2D()
+        self._jumps_said: set[str] = set()
         self._counters: dict[str, int] = {
+            "clock_jumps": 0,
             "gyro_samples": 0,
             "gyro_rejected": 0,
             "gyro_stale": 0,
@@ -212,17 +215,19 @@ class EstimateCore:
         if mtype == "WHEEL_DISTANCE":
             out += self._handle_wheels(msg, now_s)
         elif mtype == "ATTITUDE":
-            self.frame.on_attitude(msg.time_boot_ms * 1e-3, float(msg.yaw))
+            self.frame.on_attitude(self.clock.rebase(msg.time_boot_ms * 1e-3, "attitude"), float(msg.yaw))
             out += self._handle_gyro("attitude", msg.time_boot_ms * 1e-3, float(msg.yawspeed), now_s)
         elif mtype == "LOCAL_POSITION_NED":
-            self.frame.on_local_position(msg.time_boot_ms * 1e-3, float(msg.x), float(msg.y))
+            t, said = self._stamp(msg.time_boot_ms * 1e-3, now_s, "LOCAL_POSITION_NED")
+            out += said
+            self.frame.on_local_position(t, float(msg.x), float(msg.y))
         elif mtype == "SCALED_IMU":
             out += self._handle_gyro("scaled_imu", msg.time_boot_ms * 1e-3, msg.zgyro * 1e-3, now_s)
         elif mtype == "RAW_IMU":
             out += self._handle_gyro("raw_imu", msg.time_usec * 1e-6, msg.zgyro * 1e-3, now_s)
         elif mtype == "SYSTEM_TIME":
             # The same least-latency mapping as the sensor stamps (re-learnt when the boot clock restarts).
-            self._stamp(msg.time_boot_ms * 1e-3, now_s)
+            out += self._stamp(msg.time_boot_ms * 1e-3, now_s, "SYSTEM_TIME")[1]
         elif mtype == "COMMAND_ACK":
             return self.streams.handle_ack(msg, now_s)
         self._remember_pose()
@@ -297,32 +302,46 @@ class EstimateCore:
             # Poison (NaN, inf, 3e38) never reaches the filter, nor the stream's clock.
             self._counters["gyro_rejected"] += 1
             return []
-        t = self._stamp(stamp_s, now_s)
+        t, out = self._stamp(stamp_s, now_s, source.upper())
         self._after_silence(t)
-        if self.gyro.is_stale(source, stamp_s):
+        if self.gyro.is_stale(source, t):
             # Fusing a reordered or duplicated sample as the newest rate would also make the EKF's
             # trapezoid yaw correction count the interval since that old stamp twice. Dropped, as
             # WheelInput does for wheels.
             self._counters["gyro_stale"] += 1
-            return []
-        self.gyro.fused(source, stamp_s)
+            return out
+        self.gyro.fused(source, t)
         self._counters["gyro_samples"] += 1
         if not self.ekf.update_gyro(t, omega):
             self._counters["gyro_rejected"] += 1
-            return self.reporter.statustext(
+            return out + self.reporter.statustext(
                 mavlink.MAV_SEVERITY_WARNING, "gyro sample rejected by gate", now_s, key="gyro gate"
             )
+        if len(self._gyro_window) >= GYRO_WINDOW_MAX:  # no wheel step for a long while: keep the newest
+            del self._gyro_window[: len(self._gyro_window) - GYRO_WINDOW_MAX + 1]
         self._gyro_window.append(omega)
         self._gyro_last = (now_s, omega)
-        return []
+        return out
 
-    def _stamp(self, stamp_s: float, now_s: float) -> float:
-        """The filter time of a measurement: its own autopilot stamp. A restarted boot clock (stamps
-        jumping back: a reboot) restarts the filter's clock from the pose published last."""
+    def _stamp(self, stamp_s: float, now_s: float, stream: str) -> tuple[float, list[Outgoing]]:
+        """The filter time of a measurement: its own autopilot stamp, on the boot clock. A restarted
+        boot clock (every stream jumping back: a reboot) restarts the filter's clock from the pose
+        published last; one stream on another epoch is re-based (said once per stream)."""
         published_t = self.clock.autopilot_time_s(now_s)
-        if self.clock.observe(stamp_s, now_s) and self.ekf.time_s is not None:
-            self.ekf.restart_motion(published_t, new_time_s=stamp_s)
-        return stamp_s
+        st = self.clock.observe(stamp_s, now_s, stream)
+        out: list[Outgoing] = []
+        if st.event == REBOOT and self.ekf.time_s is not None:
+            self.ekf.restart_motion(published_t, new_time_s=st.t_s)
+        elif st.event == JUMP:
+            self._counters["clock_jumps"] += 1
+            if stream not in self._jumps_said and len(self._jumps_said) < 16:
+                self._jumps_said.add(stream)
+                log.warning("%s stamps jumped %+.6g s (another epoch, or garbage): re-based onto the boot clock",
+                            stream, st.jump_s)
+                out = self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING,
+                                               f"RB: {stream} clock jumped {st.jump_s:+.3g} s"[:50], now_s,
+                                               key=f"clock jump {stream}")
+        return st.t_s, out
 
     def _after_silence(self, t: float) -> None:
         """First measurement after every sensor was silent: continue from the pose published meanwhile.
@@ -335,13 +354,13 @@ class EstimateCore:
             self.ekf.restart_motion(t)
 
     def _handle_wheels(self, msg: MAVLinkMessage, now_s: float) -> list[Outgoing]:
-        step = self.wheels.ingest(int(msg.time_usec), int(msg.count), list(msg.distance))
+        published_t = self.clock.autopilot_time_s(now_s)  # before a restarted clock re-learns its offset
+        t, out = self._stamp(int(msg.time_usec) * 1e-6, now_s, "WHEEL_DISTANCE")
+        # Re-based stamps: a wheel stream that changed epochs goes on as one interval, not a 1.7e9 s one.
+        step = self.wheels.ingest(round(t * 1e6), int(msg.count), list(msg.distance))
         self.streams.arrival("WHEEL_DISTANCE", now_s)
-        out: list[Outgoing] = []
         kind = step.kind
         if kind in (StepKind.BASELINE, StepKind.REBOOT, StepKind.RESYNC):
-            published_t = self.clock.autopilot_time_s(now_s)  # before a restarted clock re-learns its offset
-            t = self._stamp(step.stamp_s, now_s)
             if kind is StepKind.REBOOT and self.ekf.time_s is not None:
                 # Continue from the pose published last (no jump), on the restarted boot clock; the
                 # silence is not dead-reckoned.
@@ -356,12 +375,11 @@ class EstimateCore:
                 out += self.streams.pump(now_s)
             return out
         if kind is StepKind.SPIKE:
-            return self.reporter.statustext(
+            return out + self.reporter.statustext(
                 mavlink.MAV_SEVERITY_WARNING, "wheel distance spike rejected", now_s, key="wheel spike"
             )
         if kind is not StepKind.STEP:
             return out
-        t = self._stamp(step.stamp_s, now_s)
         self._after_silence(t)
         gyro_mean: float | None = None
         window = self._gyro_window

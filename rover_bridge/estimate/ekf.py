@@ -83,6 +83,8 @@ STATIONARY_SIGMA_OMEGA_RAD_S = 1e-3
 # is then the likelier culprit (robot_localization has no such escape and can lock out).
 MAX_CONSECUTIVE_REJECTS = 5
 MAX_PREDICT_STEP_S = 0.1
+# Longer gaps are not integrated (predict_to): at most this / MAX_PREDICT_STEP_S sub-steps per call.
+MAX_PREDICT_GAP_S = 1.0
 EXTRAPOLATE_MAX_S = 0.2  # publishing: how far past the last measurement the pose may move
 COAST_S = 0.3  # a rover whose motors lost power stops within about this (distance = speed x this, 1 sigma)
 TRAPEZOID_MAX_DT_S = 0.2  # longer gyro gaps: no trapezoid correction (the rate is not linear over them)
@@ -281,6 +283,7 @@ class WheelGyroEKF:
         self._estimated[self._consider] = 0.0
         self._gate2 = self.noise.gate_sigma ** 2
         self.rejects_in_row = {"wheels": 0, "gyro": 0}
+        self.predict_steps = 0  # prediction sub-steps so far: the work the filter did (bounded per call)
         self._init_state(pose if pose is not None else Pose2D())
 
     def _init_state(self, pose: Pose2D) -> None:
@@ -309,17 +312,26 @@ class WheelGyroEKF:
 
     # -- time
     def predict_to(self, t_s: float) -> None:
+        """Move the state to t_s. Work is bounded whatever t_s is: a gap longer than MAX_PREDICT_GAP_S
+        is a discontinuity (the motion restarts from the held pose, as after a silent link), never
+        integrated step by step; a time that is not finite is ignored."""
+        if not math.isfinite(t_s):
+            return
         if self.time_s is None:
             self.time_s = t_s
             return
         total = t_s - self.time_s
         if total <= 0.0:
             return
+        if total > MAX_PREDICT_GAP_S:
+            self.restart_motion(t_s)
+            return
         # Sub-steps through a gap, so the covariance grows as the random walks really do (one long
         # step would add the speed noise to the speed only, not to the position it moves).
         steps = max(1, math.ceil(total / MAX_PREDICT_STEP_S))
         dt = total / steps
         ekf = self.ekf
+        self.predict_steps += steps
         for _ in range(steps):
             x = ekf.x
             F = F_jacobian(x, dt, self._F)

@@ -32,7 +32,7 @@ from rover_bridge import frames
 from rover_bridge.estimate.ekf import IV, IW, IX, IY, IYAW, Mat, Vec
 from rover_bridge.frames import LocalAnchor
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
-from rover_bridge.mavlink.wire import Link
+from rover_bridge.mavlink.wire import Link, f32, uint
 from rover_bridge.params import OdometryParams
 
 LATERAL_SIGMA_M_S = 0.02  # vy: skid-steer side slip, plus ...
@@ -135,23 +135,25 @@ class OdometryPublisher:
         pose_cov = upper_triangle_21(pose_frd)
         vel_cov = upper_triangle_21(frames.covariance_frd_from_flu(vel_flu))
         self.sent += 1
+        # Clamped to the wire types: the estimate is fed by the autopilot, and a packing error must
+        # never escape the loop (pymavlink raises on a float beyond float32 or an integer out of range).
         return mavlink.MAVLink_odometry_message(
-            time_usec=time_usec,
+            time_usec=uint(time_usec, 64),
             frame_id=mavlink.MAV_FRAME_LOCAL_FRD,
             child_frame_id=mavlink.MAV_FRAME_BODY_FRD,
-            x=px,
-            y=py,
+            x=f32(px),
+            y=f32(py),
             z=0.0,
-            q=list(frames.quaternion_from_yaw(yaw_frd)),
-            vx=v,
+            q=[f32(c) for c in frames.quaternion_from_yaw(yaw_frd)],
+            vx=f32(v),
             vy=0.0,
             vz=0.0,
             rollspeed=0.0,
             pitchspeed=0.0,
-            yawspeed=frames.mavlink_yaw_rate_from_omega(w),
-            pose_covariance=pose_cov,
-            velocity_covariance=vel_cov,
-            reset_counter=reset_counter,
+            yawspeed=f32(frames.mavlink_yaw_rate_from_omega(w)),
+            pose_covariance=[f32(c) for c in pose_cov],
+            velocity_covariance=[f32(c) for c in vel_cov],
+            reset_counter=uint(reset_counter, 8),
             estimator_type=mavlink.MAV_ESTIMATOR_TYPE_UNKNOWN,
-            quality=quality_0_100,
+            quality=uint(quality_0_100, 8),
         )

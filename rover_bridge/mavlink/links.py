@@ -195,6 +195,15 @@ class Endpoint:
         self.tx_frames += 1
         return frame
 
+    def write_raw(self, data: bytes) -> None:
+        """Bytes straight to the link (the stop guard's emergency stop, from its own thread)."""
+        self.conn.write(data)
+
+    def read_raw(self, size: int) -> bytes:
+        """What the link has, without framing or decoding (the stop guard waiting for its answer)."""
+        data = self.conn.recv(size)
+        return bytes(data) if data else b""
+
     def close(self) -> None:
         port = getattr(self.conn, "port", None)
         if port is not None and not isinstance(port, socket.socket) and hasattr(port, "flush"):

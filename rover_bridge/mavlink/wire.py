@@ -8,6 +8,7 @@ the shell byte for byte (source ids and signatures intact), so they never appear
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 
 from rover_bridge.mavlink.dialect import MAVLinkMessage
@@ -61,3 +62,28 @@ class Reaction:
 
 
 NOTHING = Reaction()
+
+
+# ---------------------------------------------------------------- wire types of values from outside
+# Every field the bridge packs from a value that came from outside (an autopilot stamp, an estimate
+# fed by its telemetry) goes through one of these first: pymavlink's struct packing raises on an
+# out-of-range integer or a float beyond float32, and that would escape the loop.
+
+FLOAT32_MAX = 3.4028234663852886e38
+
+
+def f32(value: float) -> float:
+    """A float that packs as float32: finite values clamped to +-FLT_MAX (NaN and inf pack as they are)."""
+    v = float(value)
+    if math.isfinite(v) and abs(v) > FLOAT32_MAX:
+        return math.copysign(FLOAT32_MAX, v)
+    return v
+
+
+def uint(value: float, bits: int) -> int:
+    """A whole number clamped to an unsigned field of `bits` bits (NaN -> 0)."""
+    v = float(value)
+    if not v > 0.0:
+        return 0
+    top = (1 << bits) - 1
+    return top if v >= top else int(v)

@@ -1,7 +1,10 @@
 """rover-bridge run: the process on the rover's companion computer.
 
 On SIGINT / SIGTERM (and on any unexpected exception) it sends neutral, then releases the
-overrides, then exits: 0 for a signal, 1 for an exception.
+overrides, waits for the autopilot to confirm them, then exits: 0 for a signal, 1 for an
+exception. A stop guard thread (rover_bridge.app.guard) sends the stop itself when the loop is
+stuck (signal, systemd's watchdog, safety.loop_watchdog_s); systemd is told READY=1, WATCHDOG=1
+and STOPPING=1 (rover_bridge.app.systemd).
 """
 
 from __future__ import annotations
@@ -16,7 +19,10 @@ from dataclasses import replace
 from types import FrameType
 
 from rover_bridge.app.composition import BridgeCore
+from rover_bridge.app.guard import StopGuard
 from rover_bridge.app.loop import Runner, TlogWriter
+from rover_bridge.app.systemd import SystemdNotifier
+from rover_bridge.command.core import EMERGENCY_PROBE_TS1
 from rover_bridge.errors import ConfigError
 from rover_bridge.mavlink.links import Endpoint, check_url
 from rover_bridge.mavlink.signing import SignatureVerifier, load_key, signing_timestamp
@@ -79,43 +85,64 @@ def main(args: argparse.Namespace) -> int:
     runner = Runner(core, autopilot, gcs, tlog=tlog)
 
     stop_requested: list[int] = []
-    read_fd, write_fd = os.pipe()
-    os.set_blocking(read_fd, False)
-    os.set_blocking(write_fd, False)
+    # Two pipes: the interpreter writes every signal to the first the moment it arrives (whatever the
+    # main thread is doing), the stop guard reads it and wakes the loop through the second.
+    signal_r, signal_w = os.pipe()
+    wake_r, wake_w = os.pipe()
+    for fd in (signal_r, signal_w, wake_r, wake_w):
+        os.set_blocking(fd, False)
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         stop_requested.append(signum)
 
-    old_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    old_wakeup = signal.set_wakeup_fd(write_fd)  # wakes select() at once, so the stop is not delayed
+    stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGABRT)  # SIGABRT: systemd's WatchdogSignal
+    old_handlers = {s: signal.signal(s, on_signal) for s in stop_signals}
+    old_wakeup = signal.set_wakeup_fd(signal_w)
+    guard = StopGuard(signal_r, wake_w, autopilot, profile.safety.stop_confirm_timeout_s,
+                      stall_s=profile.safety.loop_watchdog_s, probe_ts1=EMERGENCY_PROBE_TS1)
+    guard.start()
+    notifier = SystemdNotifier()
+
+    def on_pass(now_s: float) -> None:
+        guard.passed(now_s)
+        guard.frames = runner.emergency_frames
+        notifier.ping(now_s)
+
     start = time.monotonic()
     end = None if args.duration is None else start + args.duration
     log.warning("rover-bridge running: autopilot %s, gcs %s, profile %s", args.autopilot,
                 ", ".join(gcs_urls) or "none", args.params)
+    notifier.ready()
     code = 0
     confirmed: bool | None = None
     try:
         runner.run(lambda: bool(stop_requested) or (end is not None and time.monotonic() >= end),
-                   wake_fd=read_fd)
+                   wake_fd=wake_r, on_pass=on_pass)
     except Exception:
         log.exception("unexpected error: stopping the rover and exiting")
         code = 1
     finally:
+        notifier.stopping()
+        guard.stopping()
         try:
             confirmed = runner.stop_safely(time.monotonic)
         finally:
+            guard.quit()
             runner.close()
+            notifier.close()
             signal.set_wakeup_fd(old_wakeup)
             for s, h in old_handlers.items():
                 signal.signal(s, h)
-            os.close(read_fd)
-            os.close(write_fd)
+            guard.join(timeout=1.0)
+            for fd in (signal_r, signal_w, wake_r, wake_w):
+                os.close(fd)
     if args.stats_json:
         write_stats(args.stats_json, runner, verifier)
     if stop_requested:
         how = {True: "confirmed by the autopilot", False: "NOT confirmed by the autopilot",
                None: "no vehicle was known"}[confirmed]
-        log.warning("stopped by signal %d: neutral and release sent, %s", stop_requested[0], how)
+        what = "neutral and release" if profile.output.mode == "rc_override" else "trim on both outputs"
+        log.warning("stopped by signal %d: %s sent, %s", stop_requested[0], what, how)
     return code
 
 
@@ -126,6 +153,7 @@ def write_stats(path: str, runner: Runner, verifier: SignatureVerifier | None = 
         "command": dict(core.command.counters),
         "estimate": dict(core.estimate.counters),
         "runner": {"forwarded": runner.forwarded, "consumed": runner.consumed, "ticks": runner.ticks,
+                   "pack_errors": runner.pack_errors,
                    "passes": runner.passes},
         "links": {ep.url: {"rx": ep.rx_frames, "rx_bad": ep.rx_bad, "tx": ep.tx_frames} for ep in runner.endpoints},
         "statustext_suppressed": dict(core.reporter.limiter.suppressed),

@@ -1,0 +1,160 @@
+"""The stop that does not wait for the core: a thread that watches the signals and the loop.
+
+A signal (SIGINT, SIGTERM, systemd's watchdog SIGABRT) is written by the interpreter's C-level
+handler to a pipe (signal.set_wakeup_fd) the moment it arrives, whatever the main thread is doing.
+This thread reads it and wakes the loop, which stops the rover the normal way (neutral, release,
+confirmed by the autopilot: Runner.stop_safely). If the loop does not start that within GRACE_S
+(it is stuck in a long computation, or in a C call), or does not finish it in time, this thread
+sends the stop itself, from frames the loop packed beforehand (neutral, release, a TIMESYNC probe:
+Runner.emergency_frames), waits up to LINGER_S for the autopilot's answer (a stream link must stay
+open until the stop is parsed), and ends the process. The same happens when the loop has not
+completed a pass for safety.loop_watchdog_s: a bridge that stops turning stops the rover (servo
+mode would otherwise hold the last PWM forever) and exits 1, so systemd restarts it.
+
+Only raw file descriptor I/O here: the main thread may hold any lock (logging's included) when
+this thread acts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+from rover_bridge.mavlink.dialect import mavlink
+
+GRACE_S = 0.08  # the loop starts its own stop within this, or the guard does it
+LINGER_S = 0.1  # after an emergency stop: how long to wait for the autopilot's answer before exiting
+DONE_MARGIN_S = 0.3  # the loop's own stop may take its confirmation wait plus this
+POLL_S = 0.05
+EXIT_STALLED = 1
+
+
+class RawLink(Protocol):
+    """What the guard needs of the autopilot link: write and read bytes, from another thread."""
+
+    def write_raw(self, data: bytes) -> None: ...
+    def read_raw(self, size: int) -> bytes: ...
+    def fileno(self) -> int | None: ...
+
+
+class StopGuard(threading.Thread):
+    """See the module docstring. The loop calls `passed` every pass, `stopping` before its own stop and
+    `done` after it; it keeps `frames` (the emergency stop, packed) current."""
+
+    def __init__(self, signal_fd: int, wake_fd: int, link: RawLink, confirm_timeout_s: float,
+                 stall_s: float = 0.0, probe_ts1: int = 0,
+                 exit_process: Callable[[int], None] = os._exit) -> None:
+        super().__init__(name="rover-bridge stop guard", daemon=True)
+        self.signal_fd, self.wake_fd = signal_fd, wake_fd
+        self.link = link
+        self.confirm_timeout_s = confirm_timeout_s
+        self.stall_s = stall_s
+        self.probe_ts1 = probe_ts1
+        self.exit_process = exit_process
+        self.frames = b""  # written by the loop, read here: a bytes object is replaced whole
+        self.signals: list[int] = []
+        self.emergency_reason = ""
+        self._last_pass_s: float | None = None
+        self._stopping = threading.Event()
+        self._done = threading.Event()
+        self._quit = threading.Event()
+
+    # ------------------------------------------------------------------ called by the loop
+    def passed(self, now_s: float) -> None:
+        self._last_pass_s = now_s
+
+    def stopping(self) -> None:
+        self._stopping.set()
+
+    def done(self) -> None:
+        self._done.set()
+
+    def quit(self) -> None:
+        """The process is ending normally: stop watching."""
+        self._quit.set()
+        self._done.set()
+
+    # ------------------------------------------------------------------ the thread
+    def run(self) -> None:
+        while not self._quit.is_set():
+            readable, _, _ = select.select([self.signal_fd], [], [], POLL_S)
+            if self._quit.is_set():
+                return
+            if readable:
+                try:
+                    data = os.read(self.signal_fd, 64)
+                except (BlockingIOError, InterruptedError):
+                    data = b""
+                if data:
+                    self.signals += list(data)
+                    self._on_signal(data[-1])
+                    return
+            last = self._last_pass_s
+            if (self.stall_s > 0.0 and last is not None and not self._stopping.is_set()
+                    and time.monotonic() - last > self.stall_s):
+                self._emergency(f"the loop has not turned for {time.monotonic() - last:.2f} s", EXIT_STALLED)
+                return
+
+    def _on_signal(self, signum: int) -> None:
+        _poke(self.wake_fd)  # the loop's select wakes at once
+        if signum == signal.SIGABRT:  # systemd's watchdog: it has already decided the loop is stuck
+            self._emergency("watchdog signal (SIGABRT): the loop stopped pinging", EXIT_STALLED)
+            return
+        if not self._stopping.wait(GRACE_S):
+            self._emergency(f"signal {signum}: the loop did not start its stop within {GRACE_S:.2f} s", 0)
+            return
+        if not self._done.wait(self.confirm_timeout_s + DONE_MARGIN_S):
+            self._emergency(f"signal {signum}: the loop did not finish its stop", 0)
+
+    def _emergency(self, reason: str, code: int) -> None:
+        if self._done.is_set():
+            return
+        self.emergency_reason = reason
+        frames = self.frames
+        confirmed = False
+        if frames:
+            try:
+                self.link.write_raw(frames)
+                confirmed = self._linger()
+            except OSError:
+                pass
+        _say(f"rover-bridge: {reason}; stop sent by the guard ({'confirmed' if confirmed else 'NOT confirmed'} "
+             f"by the autopilot), exiting {code}\n" if frames else
+             f"rover-bridge: {reason}; no vehicle known, nothing to stop; exiting {code}\n")
+        self.exit_process(code)
+
+    def _linger(self) -> bool:
+        """Keep the link open until the autopilot answers the probe (or LINGER_S): True if it did."""
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        end = time.monotonic() + LINGER_S
+        fd = self.link.fileno()
+        while (left := end - time.monotonic()) > 0.0:
+            if fd is not None:
+                select.select([fd], [], [], min(left, 0.01))
+            try:
+                data = self.link.read_raw(4096)
+            except OSError:
+                data = b""
+            for msg in parser.parse_buffer(data) or []:
+                if msg.get_type() == "TIMESYNC" and msg.tc1 != 0 and msg.ts1 == self.probe_ts1:
+                    return True
+            if fd is None:
+                time.sleep(0.005)
+        return False
+
+
+def _poke(fd: int) -> None:
+    with contextlib.suppress(OSError):
+        os.write(fd, b"\0")
+
+
+def _say(text: str) -> None:
+    with contextlib.suppress(OSError):
+        os.write(2, text.encode("utf-8", "replace"))
