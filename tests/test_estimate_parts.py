@@ -258,3 +258,14 @@ def test_calibration_reports_only_when_enabled_and_every_interval() -> None:
     assert c.tick(1.0, True, 0.3, 0.05, 0.05) == [] and c.next_s == 31.0
     out = c.tick(31.0, True, 0.3057, 0.0499, 0.0509)
     assert out and out[0].msg.text == "cal track 0.3057 r 0.0499/0.0509"
+
+
+@pytest.mark.parametrize("value", [1e39, -1e300, math.inf, math.nan, 2.0**70])
+def test_publisher_clamps_every_field_to_its_wire_type(value: float) -> None:
+    x, P = _state()  # noqa: N806
+    x[:] = value
+    P[:, :] = value
+    msg = OdometryPublisher(OdometryParams()).message(x, P, 2**64 + 5 if value > 0 else -3, 300, 1000)
+    packed = msg.pack(mavlink.MAVLink(None, 1, 191))  # would raise struct.error / OverflowError unclamped
+    decoded = mavlink.MAVLink(None).decode(bytearray(packed))
+    assert 0 <= decoded.time_usec <= 2**64 - 1 and decoded.reset_counter <= 255 and decoded.quality <= 255

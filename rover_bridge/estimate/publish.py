@@ -121,9 +121,8 @@ class OdometryPublisher:
                 vel_flu[a][b] = float(P[ia, ib])
         for k in (2, 3, 4):
             pose_flu[k][k] = vel_flu[k][k] = big
-        vel_flu[1][1] = (
-            LATERAL_SIGMA_M_S + LATERAL_SIGMA_PER_M_S * abs(v) + LATERAL_SIGMA_PER_RAD_S * abs(w)
-        ) ** 2
+        lateral = LATERAL_SIGMA_M_S + LATERAL_SIGMA_PER_M_S * abs(v) + LATERAL_SIGMA_PER_RAD_S * abs(w)
+        vel_flu[1][1] = lateral * lateral  # (not ** 2: that raises OverflowError where * gives inf)
         pose_frd = frames.covariance_frd_from_flu(pose_flu)
         if anchor is None:
             px, py = float(x[IX]), frames.y_frd_from_y_flu(float(x[IY]))
@@ -144,7 +143,7 @@ class OdometryPublisher:
             x=f32(px),
             y=f32(py),
             z=0.0,
-            q=[f32(c) for c in frames.quaternion_from_yaw(yaw_frd)],
+            q=[f32(c) for c in frames.quaternion_from_yaw(yaw_frd if math.isfinite(yaw_frd) else math.nan)],
             vx=f32(v),
             vy=0.0,
             vz=0.0,
@@ -155,5 +154,5 @@ class OdometryPublisher:
             velocity_covariance=[f32(c) for c in vel_cov],
             reset_counter=uint(reset_counter, 8),
             estimator_type=mavlink.MAV_ESTIMATOR_TYPE_UNKNOWN,
-            quality=uint(quality_0_100, 8),
+            quality=min(100, uint(quality_0_100, 8)),  # int8_t on the wire: -1 (failure) to 100
         )
