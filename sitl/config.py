@@ -47,6 +47,13 @@ class VehicleConfig:
     pwm_max: int = 2000
     deadzone_pwm: int = 10
     motor_time_constant_s: float = 0.1
+    # Imperfect motors (the defaults are ideal ones): per-wheel speed gain (0.8 = a 20 % weak motor),
+    # curved command -> speed map (steady speed fraction = sign(c) * |c| ** exponent), and a battery
+    # that sags both gains by this fraction of their start value per simulated minute (floor 50 %).
+    left_motor_gain: float = 1.0
+    right_motor_gain: float = 1.0
+    motor_curve_exponent: float = 1.0
+    battery_sag_per_min: float = 0.0
     # Wiring: which servo output drives which wheel, and the boot SERVOn_FUNCTION values.
     left_servo: int = 1
     right_servo: int = 3
@@ -123,8 +130,17 @@ class VehicleConfig:
             "max_rpm",
             "motor_time_constant_s",
             "physics_dt_s",
+            "left_motor_gain",
+            "right_motor_gain",
         ):
             positive(name, getattr(self, name))
+        if not 0.0 < self.motor_curve_exponent <= 5.0:
+            out.append(f"motor_curve_exponent must be in (0, 5] (1 = linear), got {self.motor_curve_exponent!r}")
+        if not 0.0 <= self.battery_sag_per_min <= 0.5:
+            out.append(
+                f"battery_sag_per_min must be in [0, 0.5] (fraction of the motor gain lost per minute), "
+                f"got {self.battery_sag_per_min!r}"
+            )
         if not self.pwm_min < self.pwm_trim < self.pwm_max:
             out.append(
                 f"need pwm_min < pwm_trim < pwm_max, got {self.pwm_min}/{self.pwm_trim}/{self.pwm_max}"

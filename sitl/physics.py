@@ -11,6 +11,12 @@ Conventions (the same as ArduPilot and MAVLink, so the emulator never converts):
 Each wheel's ground contact speed is ``omega * true_radius * (1 - slip)``: the encoder measures
 the wheel's rotation, the body moves by the ground contact. A slip ratio of 0.3 means the
 contact patch covers 30 % less ground than the wheel's circumference turned.
+
+Motors: each wheel's target speed is ``speed_fraction(cmd) * max_wheel_rad_s * gain(t)``, where
+``speed_fraction`` is the (possibly curved) steady-state map of the normalised command and
+``gain(t)`` the motor's gain with battery sag (``motor_gains``); the wheel follows the target
+through a first-order lag. With the default vehicle all factors are exactly 1, so the ideal
+motor is unchanged.
 """
 
 from __future__ import annotations
@@ -45,6 +51,23 @@ def pwm_to_command(pwm: int, vehicle: VehicleConfig, reversed_: bool = False) ->
         cmd = (offset + dz) / (vehicle.pwm_trim - vehicle.pwm_min - dz)
     cmd = max(-1.0, min(1.0, cmd))
     return -cmd if reversed_ else cmd
+
+
+def speed_fraction(cmd: float, exponent: float) -> float:
+    """Steady-state wheel speed as a fraction of the maximum at normalised command ``cmd``."""
+    if exponent == 1.0:
+        return cmd  # the linear motor, exactly
+    return math.copysign(abs(cmd) ** exponent, cmd)
+
+
+def motor_gains(vehicle: VehicleConfig, time_s: float) -> tuple[float, float]:
+    """(left, right) motor gains at ``time_s`` of simulated time, battery sag included."""
+    sag = vehicle.battery_sag_per_min
+    left, right = vehicle.left_motor_gain, vehicle.right_motor_gain
+    if sag == 0.0:
+        return left, right
+    factor = max(0.5, 1.0 - sag * time_s / 60.0)
+    return left * factor, right * factor
 
 
 def encoder_counts(encoder_angle_rad: float, cpr: int) -> int:
@@ -96,8 +119,13 @@ def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleC
     # First-order motor lag, discretised exactly so a big dt cannot overshoot.
     alpha = 1.0 - math.exp(-dt_s / vehicle.motor_time_constant_s)
     max_w = vehicle.max_wheel_rad_s
-    left_w = state.left_rad_s + (inputs.left_cmd * max_w - state.left_rad_s) * alpha
-    right_w = state.right_rad_s + (inputs.right_cmd * max_w - state.right_rad_s) * alpha
+    exponent = vehicle.motor_curve_exponent
+    left_gain, right_gain = motor_gains(vehicle, state.time_s)
+    # Evaluated left to right, so with every factor 1.0 the target is exactly cmd * max_w.
+    left_target = speed_fraction(inputs.left_cmd, exponent) * max_w * left_gain
+    right_target = speed_fraction(inputs.right_cmd, exponent) * max_w * right_gain
+    left_w = state.left_rad_s + (left_target - state.left_rad_s) * alpha
+    right_w = state.right_rad_s + (right_target - state.right_rad_s) * alpha
     # Trapezoid over the step: the wheel speeds change smoothly within it.
     left_dangle = 0.5 * (state.left_rad_s + left_w) * dt_s
     right_dangle = 0.5 * (state.right_rad_s + right_w) * dt_s
