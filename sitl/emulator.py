@@ -156,6 +156,10 @@ class Emulator:
             left_encoder_ok=left_ok,
             right_encoder_ok=right_ok,
             gyro_noise_rad_s=noise,
+            left_speed_scale=sc.speed_scale("left", time_s),
+            right_speed_scale=sc.speed_scale("right", time_s),
+            left_stalled=sc.stalled("left", time_s),
+            right_stalled=sc.stalled("right", time_s),
         )
 
     def _fire_scenario_reboots(self, now_us: int) -> None:

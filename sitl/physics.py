@@ -12,11 +12,12 @@ Each wheel's ground contact speed is ``omega * true_radius * (1 - slip)``: the e
 the wheel's rotation, the body moves by the ground contact. A slip ratio of 0.3 means the
 contact patch covers 30 % less ground than the wheel's circumference turned.
 
-Motors: each wheel's target speed is ``speed_fraction(cmd) * max_wheel_rad_s * gain(t)``, where
-``speed_fraction`` is the (possibly curved) steady-state map of the normalised command and
-``gain(t)`` the motor's gain with battery sag (``motor_gains``); the wheel follows the target
-through a first-order lag. With the default vehicle all factors are exactly 1, so the ideal
-motor is unchanged.
+Motors: each wheel's target speed is ``speed_fraction(cmd) * max_wheel_rad_s * gain(t) * scale``,
+where ``speed_fraction`` is the (possibly curved) steady-state map of the normalised command,
+``gain(t)`` the motor's gain with battery sag (``motor_gains``) and ``scale`` the scenario's load
+factor (``StepInputs.left_speed_scale``); the wheel follows the target through a first-order lag.
+A stalled wheel (``StepInputs.left_stalled``) is held still: zero speed, no rotation, no counts.
+With the default vehicle and inputs all factors are exactly 1, so the ideal motor is unchanged.
 """
 
 from __future__ import annotations
@@ -87,6 +88,10 @@ class StepInputs:
     left_encoder_ok: bool = True  # False: counts of this step are lost (drop-out)
     right_encoder_ok: bool = True
     gyro_noise_rad_s: float = 0.0  # this step's white-noise sample (drawn by the caller)
+    left_speed_scale: float = 1.0  # factor on the target speed: 1 - load fraction (scenario)
+    right_speed_scale: float = 1.0
+    left_stalled: bool = False  # True: the wheel is held still for this step (scenario stall)
+    right_stalled: bool = False
 
 
 @dataclass(frozen=True)
@@ -122,13 +127,18 @@ def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleC
     exponent = vehicle.motor_curve_exponent
     left_gain, right_gain = motor_gains(vehicle, state.time_s)
     # Evaluated left to right, so with every factor 1.0 the target is exactly cmd * max_w.
-    left_target = speed_fraction(inputs.left_cmd, exponent) * max_w * left_gain
-    right_target = speed_fraction(inputs.right_cmd, exponent) * max_w * right_gain
+    left_target = speed_fraction(inputs.left_cmd, exponent) * max_w * left_gain * inputs.left_speed_scale
+    right_target = speed_fraction(inputs.right_cmd, exponent) * max_w * right_gain * inputs.right_speed_scale
     left_w = state.left_rad_s + (left_target - state.left_rad_s) * alpha
     right_w = state.right_rad_s + (right_target - state.right_rad_s) * alpha
     # Trapezoid over the step: the wheel speeds change smoothly within it.
     left_dangle = 0.5 * (state.left_rad_s + left_w) * dt_s
     right_dangle = 0.5 * (state.right_rad_s + right_w) * dt_s
+    # A stalled wheel does not turn at all; once released it spins up from rest through the lag.
+    if inputs.left_stalled:
+        left_w = left_dangle = 0.0
+    if inputs.right_stalled:
+        right_w = right_dangle = 0.0
     left_ground = left_dangle * vehicle.left_radius_true_m * (1.0 - inputs.left_slip)
     right_ground = right_dangle * vehicle.right_radius_true_m * (1.0 - inputs.right_slip)
     ds = 0.5 * (left_ground + right_ground)

@@ -24,6 +24,19 @@ start_s = 1.0
 end_s = 1.5
 
 [[event]]
+type = "load"            # a slope or a payload: the wheel reaches only (1 - fraction) of its speed
+wheel = "both"           # optional, default both
+start_s = 2.0
+end_s = 5.0
+fraction = 0.25          # [0, 1); overlapping loads multiply: (1 - f1) * (1 - f2)
+
+[[event]]
+type = "stall"           # the wheel is held still: speed 0, no encoder counts; afterwards it
+wheel = "left"           # spins up from rest through the motor lag ("left", "right" or "both")
+start_s = 3.0
+end_s = 3.5
+
+[[event]]
 type = "reboot"          # the autopilot reboots (link silent, WHEEL_DISTANCE restarts at 0)
 at_s = 5.0
 
@@ -75,6 +88,21 @@ class EncoderDropout:
 
 
 @dataclass(frozen=True)
+class LoadWindow:
+    start_s: float
+    end_s: float
+    fraction: float
+    wheel: str = "both"
+
+
+@dataclass(frozen=True)
+class StallWindow:
+    wheel: str
+    start_s: float
+    end_s: float
+
+
+@dataclass(frozen=True)
 class RebootEvent:
     at_s: float
 
@@ -96,6 +124,8 @@ class Scenario:
     dropouts: tuple[EncoderDropout, ...] = ()
     reboots: tuple[RebootEvent, ...] = ()
     silences: tuple[LinkSilence, ...] = ()
+    loads: tuple[LoadWindow, ...] = ()
+    stalls: tuple[StallWindow, ...] = ()
 
     def slip_ratio(self, wheel: str, time_s: float, x_m: float, y_m: float) -> float:
         """Largest slip ratio acting on ``wheel`` whose contact point is at (x_m, y_m)."""
@@ -107,6 +137,17 @@ class Scenario:
             if _applies(p.wheel, wheel) and p.x_min_m <= x_m <= p.x_max_m and p.y_min_m <= y_m <= p.y_max_m:
                 ratio = max(ratio, p.ratio)
         return ratio
+
+    def speed_scale(self, wheel: str, time_s: float) -> float:
+        """Factor on ``wheel``'s achieved speed from the active loads (1.0 without any)."""
+        scale = 1.0
+        for ld in self.loads:
+            if _applies(ld.wheel, wheel) and ld.start_s <= time_s < ld.end_s:
+                scale *= 1.0 - ld.fraction
+        return scale
+
+    def stalled(self, wheel: str, time_s: float) -> bool:
+        return any(_applies(st.wheel, wheel) and st.start_s <= time_s < st.end_s for st in self.stalls)
 
     def encoder_ok(self, wheel: str, time_s: float) -> bool:
         return not any(_applies(d.wheel, wheel) and d.start_s <= time_s < d.end_s for d in self.dropouts)
@@ -126,6 +167,8 @@ class Scenario:
         dropouts: list[EncoderDropout] = []
         reboots: list[RebootEvent] = []
         silences: list[LinkSilence] = []
+        loads: list[LoadWindow] = []
+        stalls: list[StallWindow] = []
         for i, raw in enumerate(events):
             where = f"event[{i}]"
             ev = _normalise(raw)
@@ -142,6 +185,10 @@ class Scenario:
                     reboots.append(RebootEvent(**args))
                 elif kind == "link_silence":
                     silences.append(LinkSilence(**args))
+                elif kind == "load":
+                    loads.append(LoadWindow(**args))
+                elif kind == "stall":
+                    stalls.append(StallWindow(**args))
                 else:
                     problems.append(f"{where}: unknown type {kind!r}")
                     continue
@@ -151,7 +198,15 @@ class Scenario:
             problems.extend(f"{where}: {p}" for p in _check(ev))
         if problems:
             raise ConfigError(source, problems)
-        return cls(tuple(slips), tuple(patches), tuple(dropouts), tuple(reboots), tuple(silences))
+        return cls(
+            tuple(slips),
+            tuple(patches),
+            tuple(dropouts),
+            tuple(reboots),
+            tuple(silences),
+            tuple(loads),
+            tuple(stalls),
+        )
 
 
 def _normalise(raw: Mapping[str, Any]) -> dict[str, Any]:
@@ -177,6 +232,8 @@ def _check(ev: Mapping[str, Any]) -> list[str]:
         out.append(f"wheel must be one of {WHEELS}, got {ev['wheel']!r}")
     if "ratio" in ev and isinstance(ev["ratio"], int | float) and not 0.0 <= ev["ratio"] < 1.0:
         out.append(f"ratio must be in [0, 1), got {ev['ratio']!r}")
+    if "fraction" in ev and isinstance(ev["fraction"], int | float) and not 0.0 <= ev["fraction"] < 1.0:
+        out.append(f"fraction must be in [0, 1) (1 would stop the wheel: use a stall), got {ev['fraction']!r}")
     if "start_s" in ev and "end_s" in ev and not out and ev["end_s"] <= ev["start_s"]:
         out.append("end_s must be after start_s")
     return out

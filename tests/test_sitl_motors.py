@@ -1,4 +1,4 @@
-"""Imperfect motors in the sitl emulator: gains, curved PWM map, deadzone, battery sag."""
+"""Imperfect motors in the sitl emulator: gains, curved PWM map, deadzone, battery sag, load, stall."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 
 from sitl import ConfigError, Emulator, Scenario, VehicleConfig
 from sitl.physics import PhysicsState, StepInputs, motor_gains, speed_fraction, step
+from sitl.scenario import LoadWindow, StallWindow
 
 V = VehicleConfig(gyro_noise_rad_s=0.0, gyro_bias_rad_s=0.0)
 MAX_WHEEL_RAD_S = 200.0 * 2.0 * math.pi / 60.0
@@ -107,6 +108,68 @@ def test_deadzone_40_drives_just_outside_at_the_remapped_command() -> None:
     assert emu.wheel_distances_m[0] > 0.05
 
 
+def test_load_window_slows_only_its_wheel_only_inside_the_window() -> None:
+    emu = armed_emulator(Scenario(loads=(LoadWindow(start_s=2.0, end_s=4.0, fraction=0.25, wheel="left"),)))
+    emu.set_radio(1, 2000)
+    emu.set_radio(3, 2000)
+    drive(emu, 1.99)
+    before = emu.truth
+    assert before.left_wheel_rad_s == pytest.approx(MAX_WHEEL_RAD_S, rel=1e-7)
+    drive(emu, 3.99)
+    inside = emu.truth
+    assert inside.left_wheel_rad_s == pytest.approx(0.75 * MAX_WHEEL_RAD_S, rel=1e-7)
+    assert inside.right_wheel_rad_s == pytest.approx(MAX_WHEEL_RAD_S, rel=1e-7)
+    drive(emu, 6.0)
+    assert emu.truth.left_wheel_rad_s == pytest.approx(MAX_WHEEL_RAD_S, rel=1e-7)
+
+
+def test_loads_default_to_both_wheels_and_overlaps_multiply() -> None:
+    sc = Scenario.from_events(
+        [
+            {"type": "load", "start_s": 1.0, "end_s": 3.0, "fraction": 0.5},
+            {"type": "load", "wheel": "right", "start_s": 2.0, "duration_s": 2.0, "fraction": 0.2},
+        ]
+    )
+    assert sc.speed_scale("left", 0.5) == 1.0
+    assert sc.speed_scale("left", 2.5) == 0.5
+    assert sc.speed_scale("right", 1.5) == 0.5
+    assert sc.speed_scale("right", 2.5) == pytest.approx(0.4)
+    assert sc.speed_scale("right", 3.5) == pytest.approx(0.8)
+    assert sc.speed_scale("right", 4.0) == 1.0
+
+
+def test_stall_holds_the_wheel_and_its_encoder_still_and_it_recovers_through_the_lag() -> None:
+    emu = armed_emulator(Scenario(stalls=(StallWindow(wheel="right", start_s=1.0, end_s=2.0),)))
+    emu.set_radio(1, 2000)
+    emu.set_radio(3, 2000)
+    drive(emu, 1.0)
+    assert emu.truth.right_wheel_rad_s == pytest.approx(MAX_WHEEL_RAD_S, rel=1e-3)
+    left_at_stall, right_at_stall = emu.wheel_distances_m
+    angle_at_stall = emu.physics_state.right_angle_rad
+    drive(emu, 2.0)
+    assert emu.truth.right_wheel_rad_s == 0.0
+    assert emu.wheel_distances_m[1] == right_at_stall  # no encoder counts while held
+    assert emu.physics_state.right_angle_rad == angle_at_stall
+    assert emu.wheel_distances_m[0] - left_at_stall > 0.9  # the other wheel keeps driving
+    # Pivoting on the held right wheel: clockwise at v_left / track.
+    assert emu.truth.yaw_rate_rad_s == pytest.approx(MAX_WHEEL_RAD_S * 0.05 / 0.30, rel=1e-6)
+    # Released: spins up from rest, 63 % after one motor time constant, full speed later.
+    drive(emu, 2.1)
+    assert emu.truth.right_wheel_rad_s == pytest.approx(MAX_WHEEL_RAD_S * (1.0 - math.exp(-1.0)), rel=1e-6)
+    drive(emu, 3.5)
+    assert emu.truth.right_wheel_rad_s == pytest.approx(MAX_WHEEL_RAD_S, rel=1e-5)
+    assert emu.wheel_distances_m[1] - right_at_stall > 1.0
+
+
+def test_stall_in_pure_physics_freezes_speed_angle_and_ground_path() -> None:
+    moving = run(StepInputs(left_cmd=1.0, right_cmd=1.0), 1.0)
+    held = run(StepInputs(left_cmd=1.0, right_cmd=1.0, left_stalled=True, right_stalled=True), 0.5, state=moving)
+    assert (held.left_rad_s, held.right_rad_s) == (0.0, 0.0)
+    assert held.left_encoder_angle_rad == moving.left_encoder_angle_rad
+    assert held.left_distance_true_m == moving.left_distance_true_m
+    assert (held.x_m, held.y_m) == (moving.x_m, moving.y_m)
+
+
 def test_battery_sag_lowers_speed_by_the_fraction_per_minute_and_floors_at_half() -> None:
     sagging = VehicleConfig(battery_sag_per_min=0.1, left_motor_gain=0.8, gyro_noise_rad_s=0.0, gyro_bias_rad_s=0.0)
     s = run(StepInputs(left_cmd=1.0, right_cmd=1.0), 180.0, vehicle=sagging)
@@ -154,3 +217,24 @@ def test_vehicle_validation_rejects_bad_motor_values_all_at_once() -> None:
         VehicleConfig.from_mapping({"left_motor_gain": "0.8"})
     ok = VehicleConfig.from_mapping({"motor_curve_exponent": 5, "battery_sag_per_min": 0.5, "right_motor_gain": 2})
     assert (ok.motor_curve_exponent, ok.battery_sag_per_min, ok.right_motor_gain) == (5.0, 0.5, 2.0)
+
+
+def test_scenario_validation_rejects_bad_load_and_stall_events() -> None:
+    with pytest.raises(ConfigError) as err:
+        Scenario.from_events(
+            [
+                {"type": "load", "start_s": 0.0, "end_s": 1.0, "fraction": 1.0},
+                {"type": "load", "wheel": "middle", "start_s": 0.0, "end_s": 1.0, "fraction": 0.1},
+                {"type": "stall", "wheel": "left", "start_s": 2.0, "end_s": 1.0},
+                {"type": "stall", "start_s": 0.0, "end_s": 1.0},
+                {"type": "load", "start_s": 0.0, "end_s": 1.0, "ratio": 0.3},
+            ],
+            source="s.toml",
+        )
+    problems = err.value.problems
+    assert problems[0] == "event[0]: fraction must be in [0, 1) (1 would stop the wheel: use a stall), got 1.0"
+    assert problems[1].startswith("event[1]: wheel must be one of")
+    assert problems[2] == "event[2]: end_s must be after start_s"
+    assert problems[3].startswith("event[3] (stall):") and "wheel" in problems[3]
+    assert problems[4].startswith("event[4] (load):") and "ratio" in problems[4]
+    assert len(problems) == 5
