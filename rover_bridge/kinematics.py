@@ -130,3 +130,11 @@ def m_to_ticks(distance_m: float, counts_per_rev: float, radius_m: float) -> flo
     """Encoder ticks counted while a wheel of `radius_m` rolls `distance_m`."""
     return (distance_m / (2.0 * math.pi * _check_positive("radius_m", radius_m))
             * _check_positive("counts_per_rev", counts_per_rev))
+
+
+@dataclass(frozen=True, slots=True)
+class MeasuredWheels:
+    """Wheel speeds measured by the encoders: the mean over an interval ending at `stamp_s` (autopilot time)."""
+
+    stamp_s: float
+    speeds: WheelSpeeds

@@ -189,7 +189,9 @@ class TwistLimiter:
         """Upper bound of the time to reach a zero twist from the current state, in continuous time.
 
         Stepping at dt_s, zero is reached in the step that crosses this time (no jerk limit) or,
-        jerk-limited, at most two steps later (the rate lags its braking curve by one step).
+        jerk-limited, a few steps later: the rate lags its sampled braking curve, and when jerk * dt
+        exceeds the rate limits it creeps onto zero (measured: at most 1-3 steps at 20-200 Hz, about
+        5 at 10 Hz).
         """
         return max(_stop_time_s(self._current.v_m_s, self._accel[0], self._v),
                    _stop_time_s(self._current.omega_rad_s, self._accel[1], self._w))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import itertools
 import math
 import tomllib
 import types
@@ -134,6 +135,50 @@ class OutputParams:
     override_source_system: int = _p(
         255, "System id the overrides are sent from: ArduPilot obeys RC_CHANNELS_OVERRIDE only from "
         "MAV_GCS_SYSID (default 255) and silently ignores every other sender.", lo=1, hi=255)
+
+
+@dataclass(frozen=True, slots=True)
+class ControlParams:
+    mode: str = _p(
+        "closed_loop", "closed_loop: a per-wheel speed loop (feedforward from the PWM map plus PI on the speed "
+        "measured from WHEEL_DISTANCE) between the kinematics and the PWM; open_loop: the PWM map alone.",
+        choices=("closed_loop", "open_loop"))
+    kp: float = _p(1.5, "Proportional gain: wheel speed command added per unit of wheel speed error.",
+                   unit="(rad/s)/(rad/s)", lo=0.0, hi=20.0)
+    ki_1_s: float = _p(15.0, "Integral gain: wheel speed command added per second per unit of speed error.",
+                       unit="1/s", lo=0.0, hi=200.0)
+    reference_s: float = _p(
+        0.15, "The response the loop expects of a wheel (first-order time constant: motor lag, encoder "
+        "interval, filter); the error is taken against the target through this lag, so a ramp does not wind "
+        "the integrator up.", unit="s", lo=0.01, hi=2.0)
+    integrator_max_fraction: float = _p(
+        0.5, "Largest correction the integrator may hold, as a fraction of the wheel's top speed.",
+        lo=0.0, lo_open=True, hi=1.0)
+    speed_filter_hz: float = _p(10.0, "Cut-off of the low-pass filter on the measured wheel speeds.", unit="Hz",
+                                lo=0.5, hi=200.0)
+    encoder_timeout_s: float = _p(
+        0.5, "No WHEEL_DISTANCE for this long: the loop falls back to feedforward only (said once) and resumes "
+        "when data returns.", unit="s", lo=0.05, hi=10.0)
+    slip_compensation: bool = _p(
+        True, "While the estimator reports wheel slip, hold the wheel targets at their values when slip began "
+        "(no further acceleration) and freeze the integrators, until wheels and gyro agree again.")
+    fault_min_fraction: float = _p(
+        0.3, "Wiring fault check: only wheels commanded above this fraction of their top speed are checked.",
+        lo=0.05, hi=1.0)
+    fault_time_s: float = _p(
+        1.0, "A checked wheel that turns the wrong way, or not at all, for this long is a wiring fault: the rover "
+        "stops and the bridge says which wheel and what to check.", unit="s", lo=0.2, hi=10.0)
+    left_curve_pwm_us: tuple[float, ...] = _p(
+        (), "Measured PWM -> speed map of the left wheel (PWM values, increasing; written by `rover-bridge "
+        "calibrate`); with left_curve_rad_s it replaces the linear map (and output.left_reversed) for this wheel.",
+        unit="us", lo=500.0, hi=2500.0)
+    left_curve_rad_s: tuple[float, ...] = _p(
+        (), "The left wheel's steady speed (forward +) at each left_curve_pwm_us value (non-decreasing, spanning 0).",
+        unit="rad/s", lo=-20000.0, hi=20000.0)
+    right_curve_pwm_us: tuple[float, ...] = _p((), "As left_curve_pwm_us, for the right wheel.", unit="us",
+                                              lo=500.0, hi=2500.0)
+    right_curve_rad_s: tuple[float, ...] = _p((), "As left_curve_rad_s, for the right wheel.", unit="rad/s",
+                                             lo=-20000.0, hi=20000.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -267,6 +312,7 @@ class Profile:
     limits: LimitsParams = field(default_factory=LimitsParams)
     command: CommandParams = field(default_factory=CommandParams)
     output: OutputParams = field(default_factory=OutputParams)
+    control: ControlParams = field(default_factory=ControlParams)
     encoders: EncoderParams = field(default_factory=EncoderParams)
     safety: SafetyParams = field(default_factory=SafetyParams)
     mavlink: MavlinkParams = field(default_factory=MavlinkParams)
@@ -411,6 +457,13 @@ def _cross_checks(p: Profile, bad: frozenset[str] = frozenset()) -> list[str]:
     if checkable("output.left_channel", "output.right_channel") and o.left_channel == o.right_channel:
         problems.append(f"output: left_channel and right_channel are both {o.left_channel}; "
                         "each wheel needs its own")
+    c = p.control
+    for side in ("left", "right"):
+        pwm_key, speed_key = f"control.{side}_curve_pwm_us", f"control.{side}_curve_rad_s"
+        if not checkable(pwm_key, speed_key):
+            continue
+        pwm, speed = getattr(c, f"{side}_curve_pwm_us"), getattr(c, f"{side}_curve_rad_s")
+        problems += [f"{side} curve: {why}" for why in curve_problems(pwm, speed)]
     e = p.encoders
     if checkable("encoders.left_index", "encoders.right_index") and e.left_index == e.right_index:
         problems.append(f"encoders: left_index and right_index are both {e.left_index}")
@@ -428,6 +481,25 @@ def _cross_checks(p: Profile, bad: frozenset[str] = frozenset()) -> list[str]:
             and p.security.require_signed_commands and not p.security.key_file):
         problems.append("security: require_signed_commands = true needs key_file")
     return problems
+
+
+def curve_problems(pwm_us: tuple[float, ...], speed_rad_s: tuple[float, ...]) -> list[str]:
+    """What is wrong with a PWM -> speed map (empty: usable, or both unset)."""
+    if not pwm_us and not speed_rad_s:
+        return []
+    out = []
+    if len(pwm_us) != len(speed_rad_s):
+        out.append(f"{len(pwm_us)} PWM values but {len(speed_rad_s)} speeds: one speed per PWM")
+    elif len(pwm_us) < 2:
+        out.append("needs at least two points")
+    else:
+        if any(b <= a for a, b in itertools.pairwise(pwm_us)):
+            out.append(f"PWM values must increase, got {list(pwm_us)}")
+        if any(b < a for a, b in itertools.pairwise(speed_rad_s)):
+            out.append(f"speeds must not decrease with PWM (reversed motor: calibrate again), got {list(speed_rad_s)}")
+        if not speed_rad_s[0] < 0.0 < speed_rad_s[-1]:
+            out.append("speeds must span both directions (a negative first and a positive last value)")
+    return out
 
 
 def profile_warnings(p: Profile) -> list[str]:

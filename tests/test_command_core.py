@@ -38,7 +38,9 @@ FAST = LimitsParams(max_linear_accel_m_s2=100.0, max_linear_decel_m_s2=100.0, ma
 
 
 def profile(fast: bool = True, **sections: object) -> Profile:
-    p = Profile()
+    # Open loop unless a test says otherwise: these tests feed no wheel encoders, and the closed loop would
+    # add its "no wheel encoders" report (its own tests are in test_wheel_control.py).
+    p = dataclasses.replace(Profile(), control=dataclasses.replace(Profile().control, mode="open_loop"))
     if fast:
         p = dataclasses.replace(p, limits=FAST)
     for name, changes in sections.items():

@@ -72,6 +72,12 @@ class BridgeCore:
             reaction = sub.handle(inc, now_s)
             consumed = consumed or reaction.consumed
             out.extend(reaction.out)
+        if inc.link is Link.AUTOPILOT and inc.msg.get_msgId() == mavlink.MAVLINK_MSG_ID_WHEEL_DISTANCE:
+            # The estimate flow measured the wheels; the command flow's speed loop and slip compensation use it.
+            sample = self.estimate.take_wheel_sample()
+            if sample is not None:
+                self.command.on_wheels(sample, now_s)
+            self.command.set_slipping(self.estimate.slip.slipping)
         return Reaction(consumed=consumed, out=tuple(out))
 
     def tick(self, now_s: float) -> list[Outgoing]:

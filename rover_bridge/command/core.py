@@ -32,6 +32,13 @@ Decisions (the README repeats them for users):
   Stop button selects: RC passthrough ignores the mode, so the wheels would keep the bridge's PWM):
   HOLD, the request is dropped and the limiter brakes to zero, then neutral; requests are refused
   while it lasts, and only a fresh one after the mode has changed drives again.
+- A wiring fault (control.fault_*: a wheel commanded hard that turns the wrong way, not at all, or
+  runs away, or the two swapped): FAULT, neutral, the request dropped and requests refused until
+  the autopilot is disarmed (the operator's "fixed, try again"); which wheel and what to check are
+  said by STATUSTEXT.
+- Closed loop (control.mode): the wheel targets go through the per-wheel speed loop
+  (rover_bridge.command.wheel_control) on the speeds the estimate flow measured; while the estimator
+  reports slip (control.slip_compensation) no wheel is driven faster than when the slip began.
 - shutdown (every exit path of the shell): neutral, release, then a TIMESYNC probe; STOPPING until
   the autopilot answers the probe (proof that it parsed the stop) or stop_confirm_timeout_s passes,
   resending every STOP_RESEND_S; then STOPPED, and nothing more is sent.
@@ -54,7 +61,8 @@ from rover_bridge.command.setpoints import (
     Request,
     decode_request,
 )
-from rover_bridge.kinematics import DiffDrive, Twist2D
+from rover_bridge.command.wheel_control import WheelSpeedLoop, WiringFault, WiringMonitor
+from rover_bridge.kinematics import DiffDrive, MeasuredWheels, Twist2D, WheelSpeeds
 from rover_bridge.limits import TwistLimiter, TwistLimits
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.gate import SecurityPolicy
@@ -79,6 +87,7 @@ class CommandState(enum.Enum):
     DISARMED = "disarmed"  # require_armed and the autopilot is disarmed: neutral
     REFUSED = "refused"  # the autopilot refused DO_SET_SERVO: neutral until a fresh request
     HOLD = "hold"  # the autopilot is in a stop mode (HOLD): brake to zero, then neutral, until a fresh request
+    FAULT = "fault"  # a wiring fault (a wheel turning the wrong way or not at all): neutral
     STOPPING = "stopping"  # shutdown() sent neutral and release: waiting for the autopilot's proof
     STOPPED = "stopped"  # the stop is over (confirmed or timed out): nothing more is sent
 
@@ -91,6 +100,7 @@ STATE_TEXT = {
     CommandState.DISARMED: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot disarmed, neutral"),
     CommandState.REFUSED: (mavlink.MAV_SEVERITY_ERROR, "RB: DO_SET_SERVO refused, neutral"),
     CommandState.HOLD: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot in HOLD, braking, then neutral"),
+    CommandState.FAULT: (mavlink.MAV_SEVERITY_CRITICAL, "RB: wiring fault: neutral until disarmed"),
     CommandState.STOPPING: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopping, neutral sent, confirming"),
     CommandState.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, autopilot confirmed release"),
 }
@@ -156,6 +166,15 @@ class CommandCore:
         self._refused = False
         self._said: set[tuple[str, int, int]] = set()
         self.security = SecurityPolicy(profile.security)
+        c = profile.control
+        ranges = (self.outputs.speed_range(left=True), self.outputs.speed_range(left=False))
+        self.loop = WheelSpeedLoop(c, *ranges) if c.mode == "closed_loop" else None
+        self.wiring = WiringMonitor(c, *ranges)
+        self._open_measured: tuple[float, WheelSpeeds] | None = None  # open loop: (arrival, speeds)
+        self._loop_closed = True  # said once when it changes
+        self._slipping = False
+        self._slip_hold: WheelSpeeds | None = None
+        self._wiring_fault: WiringFault | None = None
         self._custom_mode: int | None = None  # the autopilot's mode (HEARTBEAT custom_mode)
         self._hold_requested_s: float | None = None  # a GCS asked for a stop mode; not yet reported
         self._stop_modes = frozenset(profile.safety.stop_modes)
@@ -322,6 +341,10 @@ class CommandCore:
         self._last_heartbeat_s = now_s
         self._armed = bool(int(msg.base_mode) & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         self._custom_mode = int(msg.custom_mode)
+        if not self._armed and self._wiring_fault is not None:
+            # Disarming is how an operator says "fixed, try again" (a stuck wheel freed, a wire changed).
+            self._wiring_fault = None
+            self._count("fault.cleared")
         if self._custom_mode in self._stop_modes:
             self._hold_requested_s = None  # reported: from now on the heartbeat says when it ends
         return Reaction(consumed=False, out=tuple(self._advance(now_s, force_output=False)))
@@ -413,6 +436,9 @@ class CommandCore:
         for note in decoded.notes:
             self._count(f"note.{note}")
             out += self._say_once(f"note.{note}", f"RB: {note} ({source[0]}:{source[1]})", source, now_s)
+        if self._wiring_fault is not None:
+            self._count("dropped.fault")
+            return Reaction(consumed=True, out=tuple(out))
         self._count("requests.accepted")
         self.request, self._request_s, self._refused = request, now_s, False
         out += self._advance(now_s, force_output=True)
@@ -445,6 +471,8 @@ class CommandCore:
         if self.profile.safety.require_armed and not self._armed:
             self._drop_request()
             return CommandState.DISARMED
+        if self._wiring_fault is not None:
+            return CommandState.FAULT
         requested = self._hold_requested_s
         if requested is not None and now_s >= requested + HOLD_ANTICIPATION_S:
             self._hold_requested_s = requested = None
@@ -489,10 +517,30 @@ class CommandCore:
                 self.limiter.step(target if target is not None else Twist2D(), dt_s)
         else:
             self.limiter.reset(Twist2D())
-        wheels = self.drive.to_wheel_speeds(self.limiter.current)
-        wheels = wheels.desaturate(self.profile.robot.max_wheel_rad_s)
+        raw = self.drive.to_wheel_speeds(self.limiter.current)
+        wheels = raw.desaturate(self.profile.robot.max_wheel_rad_s)
         moving = self.state in _DRIVING or (self.state is CommandState.HOLD and self.limiter.current != Twist2D())
-        pwm = self.outputs.to_pwm(wheels) if moving else self.outputs.neutral
+        out: list[Outgoing] = []
+        if moving:
+            wheels, said = self._slip_limited(wheels, now_s)
+            out += said
+            command = wheels
+            if self.loop is not None:
+                result = self.loop.command(wheels, dt_s, now_s, pre_scaled=wheels is not raw,
+                                           freeze=self._slip_hold is not None)
+                command = result.command
+                out += self._encoders_fresh(result.closed or wheels == WheelSpeeds(), now_s)
+            fault = self.wiring.check(wheels, self._measured(now_s), now_s)
+            pwm = self.outputs.to_pwm(command)
+            if fault is not None:
+                out += self._fault(fault, now_s)
+                pwm = self.outputs.neutral
+        else:
+            if self.loop is not None:
+                self.loop.reset()
+            self.wiring.reset()
+            self._slip_hold = None
+            pwm = self.outputs.neutral
         msgs = self.outputs.command(pwm, vehicle, self.identity.autopilot_component_id)
         self.last_wheel_pwm = pwm
         self._last_output_s = now_s
@@ -503,7 +551,7 @@ class CommandCore:
         on_grid = nxt is not None and 0.0 <= now_s - nxt < self.period_s
         self._next_output_s = nxt + self.period_s if on_grid and nxt is not None else now_s + self.period_s
         self._count("outputs.sent")
-        out = [self._to_autopilot(m) for m in msgs]
+        out = [self._to_autopilot(m) for m in msgs] + out
         if self.state is CommandState.BRAKING and self.limiter.current == Twist2D():
             # Stopped: the neutral just built is the last braking output; from now on IDLE.
             self._drop_request()
@@ -513,6 +561,77 @@ class CommandCore:
     def _drop_request(self) -> None:
         self.request, self._request_s = None, None
         self.limiter.reset(Twist2D())
+
+    # ----------------------------------------------------------------- wheel speed loop, wiring, slip
+
+    def on_wheels(self, sample: MeasuredWheels, now_s: float) -> None:
+        """Measured wheel speeds (the estimate flow's checked WHEEL_DISTANCE increments, via the composition)."""
+        if self.loop is not None:
+            self.loop.measure(sample, now_s)
+        else:
+            self._open_measured = (now_s, sample.speeds)
+
+    def set_slipping(self, slipping: bool) -> None:
+        """The estimator's verdict on wheel slip (via the composition), for slip compensation."""
+        self._slipping = slipping
+
+    def _measured(self, now_s: float) -> WheelSpeeds | None:
+        if self.loop is not None:
+            return self.loop.measured if self.loop.fresh(now_s) else None
+        seen = self._open_measured
+        if seen is None or now_s - seen[0] >= self.profile.control.encoder_timeout_s:
+            return None
+        return seen[1]
+
+    def _encoders_fresh(self, fresh: bool, now_s: float) -> list[Outgoing]:
+        """Say once when the loop falls back to feedforward (stale encoders) and when it closes again."""
+        if fresh == self._loop_closed:
+            return []
+        self._loop_closed = fresh
+        self._count("control.closed" if fresh else "control.stale")
+        text = ("RB: wheel encoders back: speed loop closed" if fresh
+                else "RB: no wheel encoders: feedforward only")
+        return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, text, now_s, key="control.encoders")
+
+    def _slip_limited(self, wheels: WheelSpeeds, now_s: float) -> tuple[WheelSpeeds, list[Outgoing]]:
+        """Slip compensation: while the wheels slip, no wheel is driven faster than when slip began."""
+        measured = self._measured(now_s)
+        # Slip is a wheel spinning the way it is driven, faster than the ground moves; a wheel measured
+        # the other way is a wiring fault for the monitor, not slip to hold the speeds for.
+        agrees = measured is not None and (measured.left_rad_s * wheels.left_rad_s >= 0.0
+                                           and measured.right_rad_s * wheels.right_rad_s >= 0.0)
+        if not (self.profile.control.slip_compensation and self._slipping and agrees):
+            self._slip_hold = None
+            return wheels, []
+        out: list[Outgoing] = []
+        if self._slip_hold is None:
+            self._slip_hold = wheels
+            self._count("slip.limited")
+            out = self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, "RB: wheel slip: holding wheel speeds",
+                                           now_s, key="slip.limited")
+        hold = self._slip_hold
+
+        def capped(value: float, held: float) -> float:
+            return math.copysign(min(abs(value), abs(held)), value) if value * held > 0.0 else 0.0
+
+        return WheelSpeeds(capped(wheels.left_rad_s, hold.left_rad_s),
+                           capped(wheels.right_rad_s, hold.right_rad_s)), out
+
+    def _fault(self, fault: WiringFault, now_s: float) -> list[Outgoing]:
+        self._count(f"fault.{fault.wheel}.{fault.kind}")
+        self._wiring_fault = fault
+        self.request, self._request_s = None, None
+        self.limiter.reset(Twist2D())
+        if self.loop is not None:
+            self.loop.reset()
+        self.wiring.reset()
+        log.critical("wiring fault: %s wheel %s (commanded against measured wheel speeds); %s", fault.wheel,
+                     fault.kind, fault.texts[1][len("RB: "):])
+        out: list[Outgoing] = []
+        for text in fault.texts:
+            out += self.reporter.statustext(mavlink.MAV_SEVERITY_CRITICAL, text, now_s, key=text)
+        out += self._set_state(CommandState.FAULT, now_s)
+        return out
 
     def _set_state(self, new: CommandState, now_s: float, text: tuple[int, str] | None = None) -> list[Outgoing]:
         if new is self.state:

@@ -3,7 +3,11 @@
 PWM is linear in wheel speed: pwm_trim at 0, pwm_max at +max_wheel_rad_s, pwm_min at
 -max_wheel_rad_s (the two halves may have different slopes when trim is off-centre), a
 reversed motor mirrors the speed first, and the result is a whole number of microseconds
-clamped to [pwm_min, pwm_max].
+clamped to [pwm_min, pwm_max]. A wheel with a measured map ([control] *_curve_pwm_us and
+*_curve_rad_s, what `rover-bridge calibrate` writes) is driven through that map instead: the
+PWM whose measured steady speed is the wanted one, interpolated between the points, so a
+deadband and a curved or weak motor are compensated (the map already holds the direction, so
+*_reversed does not apply to it); zero speed is pwm_trim.
 
 RC_CHANNELS_OVERRIDE values (MAVLink common.xml): on ch1-8, 65535 (UINT16_MAX) leaves a
 channel alone and 0 releases it to the RC radio; on ch9-18, 0 or 65535 leaves it alone and
@@ -43,6 +47,41 @@ def _release_value(channel: int) -> int:
 
 
 @dataclass(frozen=True, slots=True)
+class SpeedCurve:
+    """A wheel's measured PWM -> steady speed map: PWM increasing, speed non-decreasing, spanning 0."""
+
+    pwm_us: tuple[float, ...]
+    speed_rad_s: tuple[float, ...]
+
+    @property
+    def max_forward_rad_s(self) -> float:
+        return self.speed_rad_s[-1]
+
+    @property
+    def max_reverse_rad_s(self) -> float:
+        return self.speed_rad_s[0]
+
+    def pwm_for(self, rad_s: float, trim_us: float) -> float:
+        """The PWM for a wheel speed (inverse of the map); trim for 0, the end points beyond the range."""
+        if rad_s == 0.0:
+            return trim_us
+        pwm, speed = self.pwm_us, self.speed_rad_s
+        if rad_s >= speed[-1]:
+            return pwm[-1]
+        if rad_s <= speed[0]:
+            return pwm[0]
+        if rad_s > 0.0:  # the first segment that reaches it, from the deadband's upper edge on
+            for i in range(len(speed) - 1):
+                if speed[i] < rad_s <= speed[i + 1]:
+                    return pwm[i] + (rad_s - speed[i]) / (speed[i + 1] - speed[i]) * (pwm[i + 1] - pwm[i])
+        else:  # going down from the deadband's lower edge
+            for i in range(len(speed) - 1, 0, -1):
+                if speed[i - 1] <= rad_s < speed[i]:
+                    return pwm[i] - (speed[i] - rad_s) / (speed[i] - speed[i - 1]) * (pwm[i] - pwm[i - 1])
+        return trim_us  # pragma: no cover - unreachable for a valid curve
+
+
+@dataclass(frozen=True, slots=True)
 class OutputMap:
     """The profile's output section plus the wheel speed that means full PWM."""
 
@@ -55,6 +94,8 @@ class OutputMap:
     max_wheel_rad_s: float
     left_reversed: bool = False
     right_reversed: bool = False
+    left_curve: SpeedCurve | None = None
+    right_curve: SpeedCurve | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in ("rc_override", "servo"):
@@ -69,10 +110,23 @@ class OutputMap:
 
     @classmethod
     def from_profile(cls, profile: Profile) -> OutputMap:
-        o = profile.output
+        o, c = profile.output, profile.control
+
+        def curve(pwm: tuple[float, ...], speed: tuple[float, ...]) -> SpeedCurve | None:
+            return SpeedCurve(tuple(pwm), tuple(speed)) if pwm else None
+
         return cls(mode=o.mode, left_channel=o.left_channel, right_channel=o.right_channel, pwm_min=o.pwm_min,
                    pwm_trim=o.pwm_trim, pwm_max=o.pwm_max, max_wheel_rad_s=profile.robot.max_wheel_rad_s,
-                   left_reversed=o.left_reversed, right_reversed=o.right_reversed)
+                   left_reversed=o.left_reversed, right_reversed=o.right_reversed,
+                   left_curve=curve(c.left_curve_pwm_us, c.left_curve_rad_s),
+                   right_curve=curve(c.right_curve_pwm_us, c.right_curve_rad_s))
+
+    def speed_range(self, left: bool) -> tuple[float, float]:
+        """(fastest reverse, fastest forward) speed this wheel can be driven at, rad/s."""
+        curve = self.left_curve if left else self.right_curve
+        if curve is None:
+            return -self.max_wheel_rad_s, self.max_wheel_rad_s
+        return curve.max_reverse_rad_s, curve.max_forward_rad_s
 
     @property
     def neutral(self) -> WheelPwm:
@@ -89,9 +143,19 @@ class OutputMap:
         pwm = round(self.pwm_trim + fraction * span)
         return max(self.pwm_min, min(self.pwm_max, pwm))
 
+    def curve_pwm_us(self, rad_s: float, curve: SpeedCurve) -> int:
+        if not math.isfinite(rad_s):
+            raise ValueError(f"wheel speed must be finite, got {rad_s!r}")
+        pwm = round(curve.pwm_for(rad_s, float(self.pwm_trim)))
+        return max(self.pwm_min, min(self.pwm_max, pwm))
+
     def to_pwm(self, wheels: WheelSpeeds) -> WheelPwm:
-        return WheelPwm(self.wheel_pwm_us(wheels.left_rad_s, self.left_reversed),
-                        self.wheel_pwm_us(wheels.right_rad_s, self.right_reversed))
+        lc, rc = self.left_curve, self.right_curve
+        left = (self.wheel_pwm_us(wheels.left_rad_s, self.left_reversed) if lc is None
+                else self.curve_pwm_us(wheels.left_rad_s, lc))
+        right = (self.wheel_pwm_us(wheels.right_rad_s, self.right_reversed) if rc is None
+                 else self.curve_pwm_us(wheels.right_rad_s, rc))
+        return WheelPwm(left, right)
 
     def command(self, pwm: WheelPwm, target_system: int, target_component: int) -> list[MAVLinkMessage]:
         """The messages that set both wheels to `pwm` in the configured mode."""

@@ -46,6 +46,7 @@ from rover_bridge.estimate.publish import OdometryPublisher, quality, sigma_xy
 from rover_bridge.estimate.resets import POSE_RESET_COMMAND, ResetCounter, requested_pose
 from rover_bridge.estimate.streams import Stream, StreamRequests
 from rover_bridge.estimate.wheel_input import StepKind, WheelInput
+from rover_bridge.kinematics import MeasuredWheels, WheelSpeeds
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.identity import Identity
 from rover_bridge.mavlink.report import Reporter
@@ -139,6 +140,7 @@ class EstimateCore:
         self._have_wheels = False
         self._last_wheel_fused_s: float | None = None
         self._recent: deque[tuple[float, Pose2D]] = deque(maxlen=POSE_HISTORY)  # (filter time, pose)
+        self._wheel_sample: MeasuredWheels | None = None
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -151,6 +153,11 @@ class EstimateCore:
         out.update(self.streams.counters)
         out.update(self.wheels.counters)
         return out
+
+    def take_wheel_sample(self) -> MeasuredWheels | None:
+        """The wheel speeds of the newest checked WHEEL_DISTANCE interval, once (the command flow's loop)."""
+        sample, self._wheel_sample = self._wheel_sample, None
+        return sample
 
     @property
     def reset_counter(self) -> int:
@@ -389,6 +396,9 @@ class EstimateCore:
             gyro_mean = sum(window) / len(window)
             gyro_spread = 0.5 * (max(window) - min(window))
         self._gyro_window = window[-1:]  # the last sample also bounds the next interval
+        robot = self.profile.robot
+        self._wheel_sample = MeasuredWheels(t, WheelSpeeds(step.d_left_m / step.dt_s / robot.left_radius_m,
+                                                           step.d_right_m / step.dt_s / robot.right_radius_m))
         ds = 0.5 * (step.d_left_m + step.d_right_m)
         self.raw_pose = arc_step(self.raw_pose, ds, (step.d_right_m - step.d_left_m) / self.track_width_m)
         res = self.ekf.update_wheels(t, step.d_left_m, step.d_right_m, step.dt_s, gyro_mean, gyro_spread)

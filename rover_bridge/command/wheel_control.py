@@ -1,0 +1,240 @@
+"""Closed-loop wheel speeds (pure): the speed each wheel was asked for, on real motors.
+
+Between the kinematics and the PWM map ([control] mode = closed_loop). Per wheel, every output:
+
+    u = target + kp * e + I,    e = r - measured,    I += ki * e * dt
+
+in wheel speed units (rad/s); u then goes through the PWM map (the measured curve where the profile
+has one: the feedforward). The measured speed comes from WHEEL_DISTANCE (the estimate flow's checked
+increments, differentiated on the autopilot's own stamps), low-pass filtered (speed_filter_hz).
+
+r is the reference: the target through a first-order lag of reference_s, the response to expect of
+a wheel (motor lag, the encoder interval's half-period, the filter). Correcting the error against the
+target itself would count the wheel's own lag in every ramp as a deficit and wind the integrator up
+(an overshoot of 20 % on a 0 -> 0.5 m/s step in the emulator with a weak, curved motor); against r
+only what the feedforward gets wrong is corrected (1.7 % there).
+
+- Desaturation: when a wheel's u is beyond what its motor can do (its map's range), both wheels' u
+  are scaled by one common factor, as the open-loop clamp does, so the path's curvature is kept.
+- Anti-windup: while the output is saturated, or the kinematics already scaled the targets down,
+  the integrators may only shrink; they are clamped to integrator_max_fraction of the top speed.
+- Resets: targets of zero (neutral, idle, timeout done, link lost, disarmed, refused, stopped) clear
+  the integrators and give zero: a stop never kicks a wheel backwards. A non-zero target is never
+  answered with the opposite direction either (braking is the limiter's ramp, not reverse thrust).
+- Stale encoders (no sample for encoder_timeout_s): feedforward only (u = target), the integrators
+  held as they are, so the loop resumes without a jump when samples return.
+- Slip (the estimator's verdict): the integrators are frozen (slipping wheels read too fast).
+- Stall handling: a wheel below STILL_FRACTION of its target for STALL_S is held (a stalled or
+  jammed wheel): its integrator stops and its reference follows the measured speed, so when it is
+  released it spins up to the steady command instead of a wound-up one.
+
+A D term is left out: at 20-50 Hz encoder rates a derivative of a differentiated distance is
+noise, and the motor's own lag already damps the loop.
+
+WiringMonitor: at bring-up the most common failure of per-wheel control is wiring (a swapped
+channel, a reversed motor or encoder, swapped encoder indices). A wheel commanded above
+fault_min_fraction of its top speed that turns the wrong way, or not at all, for fault_time_s is
+a fault; it says which wheel, what it did and what to check.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from rover_bridge.kinematics import MeasuredWheels, WheelSpeeds
+from rover_bridge.params import ControlParams
+
+STILL_FRACTION = 0.1  # measured below this fraction of the target: the wheel does not turn
+STALL_S = 0.25  # ... for this long: the loop treats it as stalled (integrator held, reference reseeded)
+BACKWARDS_FRACTION = 0.2  # measured at least this fraction of the target, opposite sign: wrong way
+SWAP_TOLERANCE = 0.3  # each wheel within this fraction of the other's target: swapped
+SWAP_MIN_DIFFERENCE = 0.3  # the two targets must differ by this fraction of the larger to tell a swap
+RUNAWAY_FACTOR = 1.5  # measured beyond this times the target (plus a margin of the top speed): runs away,
+RUNAWAY_MARGIN = 0.1  # what a closed loop does to a wheel whose encoder is another wheel's
+
+
+class SpeedFilter:
+    """First-order low-pass of the measured wheel speeds, on the samples' own stamps."""
+
+    def __init__(self, cutoff_hz: float) -> None:
+        self.tau_s = 1.0 / (2.0 * math.pi * cutoff_hz)
+        self.value: WheelSpeeds | None = None
+        self._stamp_s: float | None = None
+
+    def update(self, sample: MeasuredWheels) -> WheelSpeeds:
+        s = sample.speeds
+        last, stamp = self.value, self._stamp_s
+        if last is None or stamp is None or not sample.stamp_s > stamp or sample.stamp_s - stamp > 1.0:
+            self.value = s  # first sample, or after a gap or a clock restart: start from it
+        else:
+            a = 1.0 - math.exp(-(sample.stamp_s - stamp) / self.tau_s)
+            self.value = WheelSpeeds(last.left_rad_s + a * (s.left_rad_s - last.left_rad_s),
+                                     last.right_rad_s + a * (s.right_rad_s - last.right_rad_s))
+        self._stamp_s = sample.stamp_s
+        return self.value
+
+    def reset(self) -> None:
+        self.value, self._stamp_s = None, None
+
+
+@dataclass(frozen=True, slots=True)
+class LoopResult:
+    command: WheelSpeeds  # what goes to the PWM map
+    saturated: bool  # the common factor scaled the command down (or the targets were already scaled)
+    closed: bool  # the loop acted (fresh encoders); False: feedforward only
+
+
+class WheelSpeedLoop:
+    """Per-wheel feedforward + PI with anti-windup and a shared desaturation (see the module docstring)."""
+
+    def __init__(self, params: ControlParams, left_range: tuple[float, float],
+                 right_range: tuple[float, float]) -> None:
+        self.kp = params.kp
+        self.ki = params.ki_1_s
+        self.timeout_s = params.encoder_timeout_s
+        self.ranges = (left_range, right_range)  # (fastest reverse, fastest forward), rad/s
+        self.i_max = tuple(params.integrator_max_fraction * max(-lo, hi) for lo, hi in self.ranges)
+        self.reference_s = params.reference_s
+        self.filter = SpeedFilter(params.speed_filter_hz)
+        self.integral = [0.0, 0.0]
+        self.reference: list[float] | None = None  # None: starts from the measured speeds
+        self._still_since: list[float | None] = [None, None]
+        self.measured: WheelSpeeds | None = None
+        self._measured_s: float | None = None  # arrival time of the last sample (the caller's clock)
+
+    def measure(self, sample: MeasuredWheels, now_s: float) -> None:
+        if not sample.speeds.is_finite():
+            return
+        self.measured = self.filter.update(sample)
+        self._measured_s = now_s
+
+    def fresh(self, now_s: float) -> bool:
+        return self._measured_s is not None and now_s - self._measured_s < self.timeout_s
+
+    def reset(self) -> None:
+        self.integral = [0.0, 0.0]
+        self.reference = None  # set from the measured speeds on the next command
+        self._still_since = [None, None]
+
+    def command(self, target: WheelSpeeds, dt_s: float, now_s: float, pre_scaled: bool = False,
+                freeze: bool = False) -> LoopResult:
+        targets = (target.left_rad_s, target.right_rad_s)
+        if targets == (0.0, 0.0):
+            self.reset()
+            return LoopResult(target, False, False)
+        measured = self.measured
+        if measured is None or not self.fresh(now_s):
+            return LoopResult(target, pre_scaled, False)  # feedforward only; the integrators wait
+        speeds = (measured.left_rad_s, measured.right_rad_s)
+        if self.reference is None:
+            self.reference = list(speeds)  # the wheels are where they are: no error to correct yet
+        reference = self.reference
+        held = [False, False]
+        follow = 1.0 - math.exp(-dt_s / self.reference_s) if dt_s > 0.0 else 0.0
+        for k in (0, 1):
+            if abs(speeds[k]) < STILL_FRACTION * abs(targets[k]):
+                since = self._still_since[k]
+                self._still_since[k] = since = now_s if since is None else since
+                held[k] = now_s - since >= STALL_S
+            else:
+                self._still_since[k] = None
+            if held[k]:
+                reference[k] = speeds[k]
+            else:
+                reference[k] += follow * (targets[k] - reference[k])
+        errors = (reference[0] - speeds[0], reference[1] - speeds[1])
+        u = [t + self.kp * e + i for t, e, i in zip(targets, errors, self.integral, strict=True)]
+        for k in (0, 1):
+            if targets[k] == 0.0 or (u[k] > 0.0) != (targets[k] > 0.0):
+                u[k] = 0.0  # never the other direction: no reverse kick
+        scale = 1.0
+        for k, (lo, hi) in enumerate(self.ranges):
+            if u[k] > hi:
+                scale = min(scale, hi / u[k])
+            elif u[k] < lo:
+                scale = min(scale, lo / u[k])
+        saturated = pre_scaled or scale < 1.0
+        if scale < 1.0:
+            u = [x * scale for x in u]
+        if not freeze and dt_s > 0.0:
+            for k in (0, 1):
+                if held[k]:
+                    continue  # a stalled wheel: integrating its error only winds up
+                step = self.ki * errors[k] * dt_s
+                if saturated and (step > 0.0) == (targets[k] > 0.0):
+                    continue  # saturated: the integrator may only unwind
+                self.integral[k] = max(-self.i_max[k], min(self.i_max[k], self.integral[k] + step))
+        return LoopResult(WheelSpeeds(u[0], u[1]), saturated, True)
+
+
+@dataclass(frozen=True, slots=True)
+class WiringFault:
+    wheel: str  # "left", "right" or "both"
+    kind: str  # "backwards", "still", "runaway" or "swapped"
+
+    @property
+    def texts(self) -> tuple[str, str]:
+        """Two STATUSTEXT lines (50 characters each): what happened, what to check."""
+        if self.kind == "swapped":
+            return ("RB: FAULT wheels swapped (or both reversed)",
+                    "RB: check output channels / encoder indices")
+        if self.kind == "runaway":
+            return (f"RB: FAULT {self.wheel} wheel runs away",
+                    "RB: check swapped channels / encoder indices")
+        if self.kind == "backwards":
+            return (f"RB: FAULT {self.wheel} wheel turns backwards",
+                    "RB: check motor / encoder reversed, channels")
+        return (f"RB: FAULT {self.wheel} wheel does not turn",
+                "RB: check channel, SERVOn_FUNCTION, encoder")
+
+
+class WiringMonitor:
+    """Watches commanded against measured wheel speeds for the bring-up wiring faults."""
+
+    def __init__(self, params: ControlParams, left_range: tuple[float, float],
+                 right_range: tuple[float, float]) -> None:
+        self.top_rad_s = tuple(max(-lo, hi) for lo, hi in (left_range, right_range))
+        self.min_rad_s = tuple(params.fault_min_fraction * top for top in self.top_rad_s)
+        self.hold_s = params.fault_time_s
+        self._since: dict[str, float] = {}  # condition -> when it began
+
+    def reset(self) -> None:
+        self._since.clear()
+
+    def check(self, target: WheelSpeeds, measured: WheelSpeeds | None, now_s: float) -> WiringFault | None:
+        if measured is None:
+            self.reset()
+            return None
+        t = (target.left_rad_s, target.right_rad_s)
+        m = (measured.left_rad_s, measured.right_rad_s)
+        checked = [abs(t[k]) >= self.min_rad_s[k] for k in (0, 1)]
+        conditions: list[tuple[str, str]] = []
+        larger = max(abs(t[0]), abs(t[1]))
+        backwards = [checked[k] and m[k] * t[k] < 0.0 and abs(m[k]) >= BACKWARDS_FRACTION * abs(t[k])
+                     for k in (0, 1)]
+        # Each wheel doing what the other was told, or (in a turn one way and the other) both running
+        # backwards: the channels or the encoder indices are swapped (both motors reversed look the same
+        # in a spin; the text says so).
+        crossed = any(checked) and abs(t[0] - t[1]) >= SWAP_MIN_DIFFERENCE * larger and all(
+            abs(m[k] - t[1 - k]) <= SWAP_TOLERANCE * larger for k in (0, 1))
+        if crossed or (all(backwards) and t[0] * t[1] < 0.0):
+            conditions.append(("both", "swapped"))
+        for k, name in ((0, "left"), (1, "right")):
+            if not checked[k]:
+                continue
+            if backwards[k]:
+                conditions.append((name, "backwards"))
+            elif abs(m[k]) < STILL_FRACTION * abs(t[k]):
+                conditions.append((name, "still"))
+            elif abs(m[k]) > RUNAWAY_FACTOR * abs(t[k]) + RUNAWAY_MARGIN * self.top_rad_s[k]:
+                conditions.append((name, "runaway"))
+        active = {f"{w}:{kind}" for w, kind in conditions}
+        for key in list(self._since):
+            if key not in active:
+                del self._since[key]
+        for w, kind in conditions:
+            since = self._since.setdefault(f"{w}:{kind}", now_s)
+            if now_s - since >= self.hold_s:
+                return WiringFault(w, kind)
+        return None

@@ -1,0 +1,229 @@
+"""The wheel speed loop and the wiring-fault detector on their own, then through the command core.
+
+Units: wheel speeds in rad/s; the default profile's wheels top out at 20.944 rad/s (200 rpm).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rover_bridge.command.outputs import OutputMap, SpeedCurve
+from rover_bridge.command.wheel_control import STALL_S, SpeedFilter, WheelSpeedLoop, WiringFault, WiringMonitor
+from rover_bridge.kinematics import MeasuredWheels, WheelSpeeds
+from rover_bridge.params import ControlParams, Profile, profile_from_dict
+from sitl import VehicleConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+import bench_control as bench
+
+TOP = Profile().robot.max_wheel_rad_s
+RANGE = (-TOP, TOP)
+
+
+def loop(**changes: float) -> WheelSpeedLoop:
+    return WheelSpeedLoop(dataclasses.replace(ControlParams(), **changes), RANGE, RANGE)  # type: ignore[arg-type]
+
+
+def feed(lp: WheelSpeedLoop, t: float, left: float, right: float) -> None:
+    lp.measure(MeasuredWheels(t, WheelSpeeds(left, right)), t)
+
+
+def run(lp: WheelSpeedLoop, target: WheelSpeeds, measured: tuple[float, float], t0: float, seconds: float,
+        **kw: bool) -> tuple[float, list[WheelSpeeds]]:
+    """Constant measurement, outputs every 50 ms: the loop's own behaviour, no plant."""
+    out = []
+    t = t0
+    for _ in range(round(seconds / 0.05)):
+        t = round(t + 0.05, 9)
+        feed(lp, t, *measured)
+        out.append(lp.command(target, 0.05, t, **kw).command)
+    return t, out
+
+
+def test_feedforward_alone_when_the_wheels_do_what_they_are_told() -> None:
+    lp = loop()
+    _, out = run(lp, WheelSpeeds(10.0, 10.0), (10.0, 10.0), 0.0, 2.0)
+    assert out[-1] == WheelSpeeds(pytest.approx(10.0, abs=1e-6), pytest.approx(10.0, abs=1e-6))
+    assert lp.integral == [pytest.approx(0.0, abs=1e-6), pytest.approx(0.0, abs=1e-6)]
+
+
+def test_a_weak_wheel_gets_more_command_through_the_integrator_up_to_its_limit() -> None:
+    lp = loop(ki_1_s=10.0, integrator_max_fraction=0.25)
+    _, out = run(lp, WheelSpeeds(8.0, 8.0), (6.0, 8.0), 0.0, 5.0)
+    assert out[-1].left_rad_s > 10.0 and out[-1].right_rad_s == pytest.approx(8.0, abs=0.01)
+    assert lp.integral[0] == pytest.approx(0.25 * TOP)  # clamped
+
+
+def test_anti_windup_no_integration_while_saturated_and_both_wheels_scaled_together() -> None:
+    lp = loop(ki_1_s=10.0)
+    # The right wheel cannot reach 20 rad/s (it does 15): the loop asks for more than the top speed.
+    _, out = run(lp, WheelSpeeds(10.0, 20.0), (10.0, 15.0), 0.0, 3.0)
+    last = out[-1]
+    assert last.right_rad_s == pytest.approx(TOP)
+    assert last.left_rad_s < 10.0  # scaled down with the right one (one factor: the curvature is kept)
+    assert lp.integral[1] < 0.25 * TOP  # stopped growing once saturated
+    # Targets the kinematics already scaled down: the integrators do not grow either.
+    lp2 = loop(ki_1_s=10.0)
+    run(lp2, WheelSpeeds(10.0, 10.0), (8.0, 8.0), 0.0, 1.0, pre_scaled=True)
+    assert lp2.integral == [0.0, 0.0]
+
+
+def test_zero_targets_reset_and_never_kick_backwards() -> None:
+    lp = loop()
+    run(lp, WheelSpeeds(8.0, 8.0), (5.0, 5.0), 0.0, 1.0)
+    assert lp.integral[0] > 0.0
+    feed(lp, 1.05, 6.0, 6.0)
+    assert lp.command(WheelSpeeds(0.0, 0.0), 0.05, 1.05).command == WheelSpeeds(0.0, 0.0)
+    assert lp.integral == [0.0, 0.0]
+    # Braking: the wheel is faster than its (smaller) target; the command never goes negative.
+    lp2 = loop(kp=5.0)
+    _, out = run(lp2, WheelSpeeds(1.0, 1.0), (8.0, 8.0), 0.0, 0.5)
+    assert all(o.left_rad_s >= 0.0 and o.right_rad_s >= 0.0 for o in out)
+
+
+def test_stale_encoders_fall_back_to_feedforward_and_resume_without_a_jump() -> None:
+    lp = loop(encoder_timeout_s=0.5)
+    t, out = run(lp, WheelSpeeds(8.0, 8.0), (6.0, 6.0), 0.0, 2.0)
+    before, held = out[-1], list(lp.integral)
+    stale = lp.command(WheelSpeeds(8.0, 8.0), 0.05, t + 0.6)
+    assert not stale.closed and stale.command == WheelSpeeds(8.0, 8.0)  # feedforward only
+    assert lp.integral == held  # not reset, not grown
+    feed(lp, t + 0.65, 6.0, 6.0)
+    resumed = lp.command(WheelSpeeds(8.0, 8.0), 0.05, t + 0.65)
+    assert resumed.closed and abs(resumed.command.left_rad_s - before.left_rad_s) < 0.5
+
+
+def test_a_stalled_wheel_does_not_wind_up() -> None:
+    lp = loop()
+    t, _ = run(lp, WheelSpeeds(8.0, 8.0), (8.0, 8.0), 0.0, 1.0)
+    _, out = run(lp, WheelSpeeds(8.0, 8.0), (0.0, 8.0), t, 3.0)  # left held still for 3 s
+    assert lp.integral[0] < 8.0 * 15.0 * (STALL_S + 0.05)  # integrated only until it was seen stalled
+    assert out[-1].left_rad_s < 8.0 + 1.5 * 8.0  # reference reseeded: no P on a full error
+
+
+def test_slip_freezes_the_integrators() -> None:
+    lp = loop()
+    run(lp, WheelSpeeds(8.0, 8.0), (6.0, 6.0), 0.0, 1.0, freeze=True)
+    assert lp.integral == [0.0, 0.0]
+
+
+@settings(derandomize=True, deadline=None, max_examples=200)
+@given(left=st.floats(-30, 30), right=st.floats(-30, 30), ml=st.floats(-30, 30), mr=st.floats(-30, 30))
+def test_the_command_stays_in_range_keeps_direction_and_curvature(left: float, right: float, ml: float,
+                                                                 mr: float) -> None:
+    lp = loop(kp=3.0)
+    target = WheelSpeeds(left, right).desaturate(TOP)
+    feed(lp, 0.05, ml, mr)
+    out = lp.command(target, 0.05, 0.05).command
+    assert abs(out.left_rad_s) <= TOP + 1e-9 and abs(out.right_rad_s) <= TOP + 1e-9
+    for o, t in ((out.left_rad_s, target.left_rad_s), (out.right_rad_s, target.right_rad_s)):
+        assert o * t >= 0.0  # never the other way
+        if t == 0.0:
+            assert o == 0.0 or (target.left_rad_s, target.right_rad_s) != (0.0, 0.0)
+
+
+def test_speed_filter_smooths_on_the_stamps_and_restarts_after_a_gap() -> None:
+    f = SpeedFilter(10.0)
+    assert f.update(MeasuredWheels(1.0, WheelSpeeds(0.0, 0.0))) == WheelSpeeds(0.0, 0.0)
+    half = f.update(MeasuredWheels(1.05, WheelSpeeds(10.0, 10.0)))
+    assert 5.0 < half.left_rad_s < 10.0
+    assert f.update(MeasuredWheels(5.0, WheelSpeeds(3.0, 3.0))) == WheelSpeeds(3.0, 3.0)  # after a gap
+
+
+# ------------------------------------------------------------------ wiring faults
+
+
+def monitor() -> WiringMonitor:
+    return WiringMonitor(ControlParams(fault_time_s=1.0), RANGE, RANGE)
+
+
+@pytest.mark.parametrize(("target", "measured", "fault"), [
+    ((10.0, 10.0), (-8.0, 10.0), WiringFault("left", "backwards")),
+    ((10.0, 10.0), (10.0, 0.0), WiringFault("right", "still")),
+    ((12.0, 7.0), (7.0, 12.0), WiringFault("both", "swapped")),
+    ((-9.0, 9.0), (9.0, -9.0), WiringFault("both", "swapped")),
+    ((8.0, 8.0), (8.0, 19.0), WiringFault("right", "runaway")),
+])
+def test_each_wiring_fault_is_named_after_it_lasted(target: tuple[float, float], measured: tuple[float, float],
+                                                   fault: WiringFault) -> None:
+    m = monitor()
+    t, m_speeds = WheelSpeeds(*target), WheelSpeeds(*measured)
+    assert m.check(t, m_speeds, 0.0) is None
+    assert m.check(t, m_speeds, 0.9) is None
+    assert m.check(t, m_speeds, 1.0) == fault
+    assert all(len(text) <= 50 for text in fault.texts)
+
+
+def test_no_fault_for_small_commands_or_when_it_clears_in_time() -> None:
+    m = monitor()
+    assert m.check(WheelSpeeds(2.0, 2.0), WheelSpeeds(0.0, 0.0), 0.0) is None  # below fault_min_fraction
+    assert m.check(WheelSpeeds(2.0, 2.0), WheelSpeeds(0.0, 0.0), 5.0) is None
+    m.check(WheelSpeeds(10.0, 10.0), WheelSpeeds(0.0, 10.0), 6.0)
+    m.check(WheelSpeeds(10.0, 10.0), WheelSpeeds(5.0, 10.0), 6.5)  # it started turning
+    assert m.check(WheelSpeeds(10.0, 10.0), WheelSpeeds(0.0, 10.0), 7.2) is None  # a new episode begins
+
+
+def test_a_measured_curve_is_the_feedforward_and_defines_the_range() -> None:
+    curve = SpeedCurve((1000.0, 1300.0, 1460.0, 1540.0, 1700.0, 2000.0), (-16.0, -9.0, 0.0, 0.0, 9.0, 17.0))
+    out = OutputMap("rc_override", 1, 3, 1000, 1500, 2000, TOP, left_curve=curve)
+    assert out.speed_range(left=True) == (-16.0, 17.0) and out.speed_range(left=False) == RANGE
+    pwm = out.to_pwm(WheelSpeeds(9.0, 10.0))
+    assert pwm.left_us == 1700 and pwm.right_us == round(1500 + 500 * 10.0 / TOP)
+    assert out.to_pwm(WheelSpeeds(0.001, 0.0)).left_us == 1540  # the deadband's edge, not trim + a little
+    assert out.to_pwm(WheelSpeeds(0.0, 0.0)).left_us == 1500
+
+
+# ------------------------------------------------------------------ through the command core, on the emulator
+# (benchmarks/bench_control.py's lockstep rig: the whole core and the emulator, no sockets)
+
+
+def test_closed_loop_drives_a_weak_curved_motor_at_the_requested_speed_and_open_loop_does_not() -> None:
+    closed = bench.straight(bench.bench_profile("closed_loop"))
+    opened = bench.straight(bench.bench_profile("open_loop"))
+    assert abs(closed["speed_error_pct"]) < 3.0 and closed["heading_drift_deg"] < 2.0
+    assert opened["speed_error_pct"] < -20.0 and opened["heading_drift_deg"] > 20.0
+
+
+def test_closed_loop_step_stall_and_spin_targets() -> None:
+    profile = bench.bench_profile("closed_loop")
+    step = bench.step_response(profile)
+    assert step["t90_s"] < 1.0 and step["overshoot_pct"] <= 10.0
+    assert bench.stall(profile)["overshoot_pct"] <= 10.0
+    spin = bench.spin(profile)
+    assert abs(spin["yaw_rate_error_pct"]) < 5.0 and spin["max_abs_v_m_s"] < 0.03
+
+
+def _faulty(vehicle: VehicleConfig, **profile: object) -> bench.Rig:
+    rig = bench.Rig(profile_from_dict({"control": {"mode": "closed_loop"}, **profile}), vehicle)
+    rig.start()
+    rig.drive(3.0, 0.5, 0.0)
+    return rig
+
+
+@pytest.mark.parametrize(("vehicle", "profile", "first_line"), [
+    (VehicleConfig(start_armed=True, left_reversed=True), {}, "RB: FAULT left wheel turns backwards"),
+    (VehicleConfig(start_armed=True), {"encoders": {"right_reversed": True}}, "RB: FAULT right wheel turns backwards"),
+    (VehicleConfig(start_armed=True, left_function=53, right_function=51), {}, None),  # swapped: a spin shows it
+    (VehicleConfig(start_armed=True, left_function=0), {}, "RB: FAULT left wheel does not turn"),
+])
+def test_wiring_faults_on_the_emulator_stop_the_rover_and_say_what_to_check(
+        vehicle: VehicleConfig, profile: dict[str, object], first_line: str | None) -> None:
+    rig = _faulty(vehicle, **profile)
+    if first_line is None:  # swapped channels look right driving straight: a spin tells them apart
+        rig.drive(3.0, 0.0, 3.0)  # fast enough for the check: 9 rad/s per wheel
+        first_line = "RB: FAULT wheels swapped (or both reversed)"
+    assert first_line in rig.texts, rig.texts
+    assert rig.core.command.state.value == "fault"
+    rig.drive(1.0, 0.5, 0.0)  # requests keep coming: refused, the rover stands
+    assert abs(rig.emu.truth.v_m_s) < 0.02 and math.isfinite(rig.emu.truth.x_m)
+    assert rig.core.command.counters["dropped.fault"] >= 5
+    rig.emu.set_armed(False)  # the operator disarms: the fault is cleared
+    rig.drive(1.5)
+    assert rig.core.command.state.value != "fault"
