@@ -28,6 +28,7 @@ import logging
 import math
 import sys
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 from rover_bridge.app.composition import BridgeCore
@@ -188,6 +189,52 @@ def stall(profile: Profile, vehicle: VehicleConfig = IMPERFECT) -> dict[str, flo
             "final_left_rad_s": after[-1]}
 
 
+def calibrate(profile: Profile, vehicle: VehicleConfig = IMPERFECT, quick: bool = False) -> tuple[Any, Rig]:
+    """`rover-bridge calibrate`'s sequence in lockstep: (its Calibration, the rig it ran on)."""
+    from rover_bridge.app.calibration import Calibration
+
+    rig = Rig(profile, vehicle)
+    cal = Calibration(profile, quick=quick)
+    est = rig.core.estimate
+
+    def observe(sample: Any, now_s: float) -> None:
+        gyro = est.last_gyro
+        cal.sample(sample, None if gyro is None else gyro[1] - est.state.gyro_bias_rad_s, now_s)
+
+    rig.core.wheel_observers.append(observe)
+    rig.drive(1.0)  # the vehicle is known, streams asked for
+    last = None
+    while True:
+        pwm = cal.tick(rig.t)
+        if pwm != last:
+            rig._to_autopilot(rig.core.command.set_direct(pwm, rig.t))
+            last = pwm
+        if pwm is None:
+            break
+        rig.step()
+    return cal, rig
+
+
+def calibration_table(cal: Any, vehicle: VehicleConfig = IMPERFECT) -> str:
+    res = cal.result
+    if res is None:
+        return f"calibration failed: {cal.error}"
+    true_track = vehicle.track_true_m / (0.5 * (vehicle.left_radius_true_m + vehicle.right_radius_true_m)
+                                        / vehicle.wheel_radius_m)
+    rows = [("left gain forward / reverse", f"{res.left.gain_forward:.3f} / {res.left.gain_reverse:.3f}",
+             f"{vehicle.left_motor_gain:.3f}"),
+            ("right gain forward / reverse", f"{res.right.gain_forward:.3f} / {res.right.gain_reverse:.3f}",
+             f"{vehicle.right_motor_gain:.3f}"),
+            ("left deadband (us from trim)", f"{res.left.deadband_us[0]:+.0f} / {res.left.deadband_us[1]:+.0f}",
+             f"-/+{vehicle.deadzone_pwm}"),
+            ("right deadband (us from trim)", f"{res.right.deadband_us[0]:+.0f} / {res.right.deadband_us[1]:+.0f}",
+             f"-/+{vehicle.deadzone_pwm}"),
+            ("effective track (m)", f"{res.track_width_m:.4f}", f"{true_track:.4f}"),
+            ("radius ratio right/left", f"{res.radius_ratio:.4f}",
+             f"{vehicle.right_radius_true_m / vehicle.left_radius_true_m:.4f}")]
+    return "\n".join(f"  {a:32s} {b:>18s}   truth {c}" for a, b, c in rows)
+
+
 CASES = [("straight 0.5 m/s", straight), ("step 0 -> 0.5 m/s", step_response), ("15 % load window", load_recovery),
          ("spin 0.8 rad/s", spin), ("left wheel stalled 3 s", stall)]
 
@@ -199,12 +246,25 @@ def fmt(values: dict[str, float]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     ap.add_argument("--patch", default=None, help="a profile patch from `rover-bridge calibrate` for open loop")
+    ap.add_argument("--calibrate", action="store_true",
+                    help="run the calibration sequence first and add open loop with its patch")
     args = ap.parse_args(argv)
     logging.disable(logging.WARNING)
+    if args.calibrate:
+        import tempfile
+
+        cal, _ = calibrate(bench_profile("closed_loop"))
+        print("calibrate (the sequence of `rover-bridge calibrate`, in lockstep on the same vehicle)")
+        print(calibration_table(cal))
+        if cal.result is not None:
+            path = Path(tempfile.mkdtemp()) / "patch.toml"
+            path.write_text(cal.result.patch_toml("bench_control --calibrate"))
+            args.patch = str(path)
     modes: list[tuple[str, Profile]] = [("open loop", bench_profile("open_loop")),
                                         ("closed loop", bench_profile("closed_loop"))]
     if args.patch:
         patched = load_profile(args.patch)
+        patched = replace(patched, estimator=replace(patched.estimator, stream_rate_hz=20.0))
         modes.append(("open loop + patch", replace(patched, control=replace(patched.control, mode="open_loop"))))
     print("vehicle: left motor 20 % weak, 40 us deadband, speed = command^1.5; lockstep, ground truth")
     for name, case in CASES:

@@ -8,10 +8,12 @@ the bridge's own HEARTBEAT. The shell (rover_bridge.app.loop) feeds every decode
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 from rover_bridge.command.core import CommandCore
 from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.kinematics import MeasuredWheels
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.gate import BRIDGE_COMMANDS, CommandGate
 from rover_bridge.mavlink.identity import Identity
@@ -39,6 +41,8 @@ class BridgeCore:
         # [security] in front of both cores: a refused frame reaches neither, nor the autopilot.
         self.gate = CommandGate(profile, self.identity, self.reporter)
         self._subcores: tuple[SubCore, ...] = (self.command, self.estimate)
+        # Who else wants the measured wheel speeds (`rover-bridge calibrate`).
+        self.wheel_observers: list[Callable[[MeasuredWheels, float], None]] = []
         self._next_heartbeat_s: float | None = None
         names = CommandCore.AUTOPILOT_READS | EstimateCore.AUTOPILOT_READS | BRIDGE_COMMANDS
         ids = frozenset(getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in names)
@@ -77,6 +81,8 @@ class BridgeCore:
             sample = self.estimate.take_wheel_sample()
             if sample is not None:
                 self.command.on_wheels(sample, now_s)
+                for observe in self.wheel_observers:
+                    observe(sample, now_s)
             self.command.set_slipping(self.estimate.slip.slipping)
         return Reaction(consumed=consumed, out=tuple(out))
 

@@ -88,6 +88,7 @@ class CommandState(enum.Enum):
     REFUSED = "refused"  # the autopilot refused DO_SET_SERVO: neutral until a fresh request
     HOLD = "hold"  # the autopilot is in a stop mode (HOLD): brake to zero, then neutral, until a fresh request
     FAULT = "fault"  # a wiring fault (a wheel turning the wrong way or not at all): neutral
+    DIRECT = "direct"  # `rover-bridge calibrate` sets each wheel's PWM itself (no request, no loop)
     STOPPING = "stopping"  # shutdown() sent neutral and release: waiting for the autopilot's proof
     STOPPED = "stopped"  # the stop is over (confirmed or timed out): nothing more is sent
 
@@ -101,6 +102,7 @@ STATE_TEXT = {
     CommandState.REFUSED: (mavlink.MAV_SEVERITY_ERROR, "RB: DO_SET_SERVO refused, neutral"),
     CommandState.HOLD: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot in HOLD, braking, then neutral"),
     CommandState.FAULT: (mavlink.MAV_SEVERITY_CRITICAL, "RB: wiring fault: neutral until disarmed"),
+    CommandState.DIRECT: (mavlink.MAV_SEVERITY_WARNING, "RB: calibrating: driving wheels directly"),
     CommandState.STOPPING: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopping, neutral sent, confirming"),
     CommandState.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, autopilot confirmed release"),
 }
@@ -175,6 +177,7 @@ class CommandCore:
         self._slipping = False
         self._slip_hold: WheelSpeeds | None = None
         self._wiring_fault: WiringFault | None = None
+        self._direct: WheelPwm | None = None  # calibrate: each wheel's PWM, set directly
         self._custom_mode: int | None = None  # the autopilot's mode (HEARTBEAT custom_mode)
         self._hold_requested_s: float | None = None  # a GCS asked for a stop mode; not yet reported
         self._stop_modes = frozenset(profile.safety.stop_modes)
@@ -420,6 +423,9 @@ class CommandCore:
         if self.state is CommandState.DISARMED:
             self._count("dropped.disarmed")
             return Reaction(consumed=True, out=tuple(out))
+        if self.state is CommandState.DIRECT:
+            self._count("dropped.direct")
+            return Reaction(consumed=True, out=tuple(out))
         if self.state is CommandState.HOLD:
             # The GCS pressed Hold: a request still streaming from a planner must not undo it.
             self._count("dropped.hold")
@@ -473,6 +479,8 @@ class CommandCore:
             return CommandState.DISARMED
         if self._wiring_fault is not None:
             return CommandState.FAULT
+        if self._direct is not None and self._custom_mode not in self._stop_modes:
+            return CommandState.DIRECT
         requested = self._hold_requested_s
         if requested is not None and now_s >= requested + HOLD_ANTICIPATION_S:
             self._hold_requested_s = requested = None
@@ -521,6 +529,15 @@ class CommandCore:
         wheels = raw.desaturate(self.profile.robot.max_wheel_rad_s)
         moving = self.state in _DRIVING or (self.state is CommandState.HOLD and self.limiter.current != Twist2D())
         out: list[Outgoing] = []
+        if self.state is CommandState.DIRECT and self._direct is not None:
+            msgs = self.outputs.command(self._direct, vehicle, self.identity.autopilot_component_id)
+            self.last_wheel_pwm = self._direct
+            self._last_output_s = now_s
+            nxt = self._next_output_s
+            on_grid = nxt is not None and 0.0 <= now_s - nxt < self.period_s
+            self._next_output_s = nxt + self.period_s if on_grid and nxt is not None else now_s + self.period_s
+            self._count("outputs.direct")
+            return [self._to_autopilot(m) for m in msgs]
         if moving:
             wheels, said = self._slip_limited(wheels, now_s)
             out += said
@@ -563,6 +580,16 @@ class CommandCore:
         self.limiter.reset(Twist2D())
 
     # ----------------------------------------------------------------- wheel speed loop, wiring, slip
+
+    def set_direct(self, pwm: WheelPwm | None, now_s: float) -> list[Outgoing]:
+        """Drive each wheel at this PWM (None: back to requests): `rover-bridge calibrate`'s steps. Every
+        safety path still applies first (link lost, disarmed, a stop mode, a fault, the stop at exit); a
+        request arriving meanwhile is refused."""
+        if self.state in _OVER:
+            return []
+        self._direct = pwm
+        self._drop_request()
+        return self._advance(now_s, force_output=True)
 
     def on_wheels(self, sample: MeasuredWheels, now_s: float) -> None:
         """Measured wheel speeds (the estimate flow's checked WHEEL_DISTANCE increments, via the composition)."""

@@ -154,6 +154,11 @@ class EstimateCore:
         out.update(self.wheels.counters)
         return out
 
+    @property
+    def last_gyro(self) -> tuple[float, float] | None:
+        """(arrival time, yaw rate CCW rad/s, bias not removed) of the newest fused gyro sample."""
+        return self._gyro_last
+
     def take_wheel_sample(self) -> MeasuredWheels | None:
         """The wheel speeds of the newest checked WHEEL_DISTANCE interval, once (the command flow's loop)."""
         sample, self._wheel_sample = self._wheel_sample, None
