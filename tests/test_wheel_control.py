@@ -227,3 +227,44 @@ def test_wiring_faults_on_the_emulator_stop_the_rover_and_say_what_to_check(
     rig.emu.set_armed(False)  # the operator disarms: the fault is cleared
     rig.drive(1.5)
     assert rig.core.command.state.value != "fault"
+
+
+def test_slip_compensation_holds_the_wheel_targets_until_slip_ends_and_can_be_turned_off() -> None:
+    from rover_bridge.command.core import CommandCore
+    from rover_bridge.mavlink.dialect import mavlink
+    from rover_bridge.mavlink.identity import Identity
+    from rover_bridge.mavlink.report import Reporter
+    from rover_bridge.mavlink.wire import Incoming, Link
+
+    def run(compensate: bool) -> tuple[list[int], list[str], CommandCore]:
+        # Open loop isolates the hold (the closed loop would also answer the fake, instant wheel speeds).
+        prof = profile_from_dict({"control": {"slip_compensation": compensate, "mode": "open_loop"}})
+        ident = Identity.from_profile(prof)
+        core = CommandCore(prof, ident, Reporter(ident))
+        ap = mavlink.MAVLink(None, 1, 1)
+        gcs = mavlink.MAVLink(None, 255, 190)
+        hb = mavlink.MAVLink_heartbeat_message(10, 3, mavlink.MAV_MODE_FLAG_SAFETY_ARMED | 1, 15, 4, 3)
+        core.handle(Incoming(Link.AUTOPILOT, ap.decode(bytearray(hb.pack(ap)))), 0.0)
+        pwm, texts = [], []
+        t = 0.0
+        for i in range(40):  # 2 s: a request every 0.1 s ramping the rover up at the limiter's 1 m/s^2
+            t = 0.05 * (i + 1)
+            core.on_wheels(MeasuredWheels(t, WheelSpeeds(*(2 * [core.commanded.v_m_s / 0.05]))), t)
+            core.set_slipping(0.5 <= t < 1.5)
+            if i % 2 == 0:
+                req = mavlink.MAVLink_set_position_target_local_ned_message(0, 1, 1, 8, 0b0101_1100_0111, 0, 0, 0,
+                                                                            0.8, 0, 0, 0, 0, 0, 0, 0)
+                out = list(core.handle(Incoming(Link.GCS, gcs.decode(bytearray(req.pack(gcs)))), t).out)
+            else:
+                out = core.tick(t)
+            texts += [o.msg.text for o in out if o.msg.get_type() == "STATUSTEXT"]
+            pwm += [int(o.msg.chan1_raw) for o in out if o.msg.get_type() == "RC_CHANNELS_OVERRIDE"]
+        return pwm, texts, core
+
+    held, texts, core = run(True)
+    during = held[len(held) * 12 // 40: len(held) * 28 // 40]  # about t 0.6 .. 1.4 s
+    assert max(during) - min(during) <= 2  # held: no further acceleration while slipping
+    assert held[-1] > max(during) + 20  # released when the wheels and the gyro agree again
+    assert "RB: wheel slip: holding wheel speeds" in texts and core.counters["slip.limited"] == 1
+    free, _, _ = run(False)
+    assert free[len(free) * 28 // 40] > max(during) + 20  # off: it kept accelerating
