@@ -24,7 +24,9 @@ Behaviour copied from ArduPilot (read in its source; behaviour only, no code):
   than that RC channel's dead zone (SRV_Channel.cpp ignore_small_rcin_changes; Rover's
   default RC1_DZ = RC3_DZ = 30).
 - Stream groups (libraries/GCS_MAVLink/GCS_MAVLink_Parameters.cpp, 4.7): RAW_SENSORS has
-  RAW_IMU; RC_CHANNELS has SERVO_OUTPUT_RAW and RC_CHANNELS; POSITION has LOCAL_POSITION_NED;
+  RAW_IMU; RC_CHANNELS has SERVO_OUTPUT_RAW and RC_CHANNELS; POSITION has GLOBAL_POSITION_INT (lat/lon 0
+  before the EKF has a position: send_global_position_int ignores get_location's result) and
+  LOCAL_POSITION_NED;
   EXTRA1 has ATTITUDE, SIMSTATE and (Rover) WHEEL_DISTANCE; EXTRA2 VFR_HUD; EXTRA3 SYSTEM_TIME.
   REQUEST_DATA_STREAM sets the SRn_ rate of the group(s) and resets that group's per-message
   intervals. SET_MESSAGE_INTERVAL for an id without an internal mapping answers
@@ -35,7 +37,9 @@ Behaviour copied from ArduPilot (read in its source; behaviour only, no code):
 - WHEEL_DISTANCE (Rover/GCS_MAVLink_Rover.cpp, libraries/AP_WheelEncoder): time_usec = time
   since boot, cumulative metres since boot = counts * 2*pi*WENCn_RADIUS / WENCn_CPR.
 
-- Modes (Rover/mode.h): every Rover custom_mode is accepted and reported in HEARTBEAT; RC
+- Modes (Rover/mode.h): every Rover custom_mode is accepted and reported in HEARTBEAT, one sent at once
+  after a change (Rover/system.cpp set_mode: gcs().send_message(MSG_HEARTBEAT)); SET_MODE gets no ACK,
+  DO_SET_MODE its COMMAND_ACK while parsing (so the ACK arrives before that heartbeat); RC
   passthrough outputs (51..66) follow the RC input in every mode (SRV_Channel::output_ch has no
   mode check), so HOLD stops only the motor-function outputs.
 - TIMESYNC (GCS_Common.cpp handle_timesync): tc1 == 0 is answered at once, ts1 echoed.
@@ -99,7 +103,10 @@ STREAM_GROUPS: dict[int, tuple[str, tuple[int, ...]]] = {
         "SR0_RC_CHAN",
         (_P.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, _P.MAVLINK_MSG_ID_RC_CHANNELS),
     ),
-    _P.MAV_DATA_STREAM_POSITION: ("SR0_POSITION", (_P.MAVLINK_MSG_ID_LOCAL_POSITION_NED,)),
+    _P.MAV_DATA_STREAM_POSITION: (
+        "SR0_POSITION",
+        (_P.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, _P.MAVLINK_MSG_ID_LOCAL_POSITION_NED),
+    ),
     _P.MAV_DATA_STREAM_EXTRA1: (
         "SR0_EXTRA1",
         (_P.MAVLINK_MSG_ID_ATTITUDE, _P.MAVLINK_MSG_ID_SIMSTATE, _P.MAVLINK_MSG_ID_WHEEL_DISTANCE),
@@ -532,6 +539,8 @@ class Autopilot:
         if custom_mode not in MODE_NAMES:
             self.send_text(_P.MAV_SEVERITY_WARNING, f"Mode change to {custom_mode} failed: not emulated")
             return False
+        if custom_mode != self.mode:
+            self._pending_requests.append(_P.MAVLINK_MSG_ID_HEARTBEAT)  # announced at once, as Rover does
         self.mode = custom_mode
         return True
 
@@ -742,6 +751,15 @@ class Autopilot:
             vx = s.v_m_s * math.cos(s.yaw_rad)
             vy = s.v_m_s * math.sin(s.yaw_rad)
             return m.local_position_ned_encode(boot_ms, s.x_m, s.y_m, 0.0, vx, vy, 0.0)
+        if msg_id == _P.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+            lat_deg = lon_deg = 0.0  # no position yet: ArduPilot sends zeros
+            if self.has_position():
+                ext = self.extnav.position() if self.extnav_position_source else None
+                lat_deg, lon_deg = self._lat_lon_of(*(ext if ext is not None else (s.x_m, s.y_m)))
+            vn, ve = s.v_m_s * math.cos(s.yaw_rad), s.v_m_s * math.sin(s.yaw_rad)
+            hdg = round(math.degrees(self.heading_rad(s)) * 100.0) % 36000
+            return m.global_position_int_encode(boot_ms, round(lat_deg * 1e7), round(lon_deg * 1e7), 584_000, 0,
+                                                round(vn * 100.0), round(ve * 100.0), 0, hdg)
         if msg_id == _P.MAVLINK_MSG_ID_SIMSTATE:
             lat_deg, lon_deg = self._lat_lon(s)
             lateral_m_s2 = s.v_m_s * s.yaw_rate_rad_s
@@ -761,10 +779,12 @@ class Autopilot:
         raise ValueError(f"cannot build message id {msg_id}")
 
     def _lat_lon(self, s: PhysicsState) -> tuple[float, float]:
+        return self._lat_lon_of(s.x_m, s.y_m)
+
+    def _lat_lon_of(self, north_m: float, east_m: float) -> tuple[float, float]:
+        """A point north/east of the origin (vehicle origin_lat/lon_deg), on a sphere of the WGS-84 radius."""
         earth_radius_m = 6378137.0
         lat0 = self.vehicle.origin_lat_deg
-        lat = lat0 + math.degrees(s.x_m / earth_radius_m)
-        lon = self.vehicle.origin_lon_deg + math.degrees(
-            s.y_m / (earth_radius_m * math.cos(math.radians(lat0)))
-        )
+        lat = lat0 + math.degrees(north_m / earth_radius_m)
+        lon = self.vehicle.origin_lon_deg + math.degrees(east_m / (earth_radius_m * math.cos(math.radians(lat0))))
         return lat, lon
