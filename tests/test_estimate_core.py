@@ -257,8 +257,26 @@ def test_stream_requests_and_fallback_on_denied() -> None:
                               ("interval", mavlink.MAVLINK_MSG_ID_ATTITUDE, 50_000.0)]
     reaction = core.handle(Incoming(Link.AUTOPILOT, _ack(mavlink.MAV_RESULT_ACCEPTED)), 0.2)
     assert reaction.consumed and _requests(list(reaction.out)) == []
-    assert _requests(core.tick(5.0)) == []  # nothing outstanding, nothing repeated
+    assert _requests(core.tick(4.9)) == []  # nothing outstanding, nothing repeated
     assert core.counters["stream_fallbacks"] == 1
+
+
+def test_position_streams_are_asked_for_only_when_they_do_not_come() -> None:
+    # A GCS's map asked for LOCAL_POSITION_NED at 10 Hz: the bridge's own 2 Hz request would slow it down
+    # (the last SET_MESSAGE_INTERVAL on a link wins), so it watches first and asks only for what is missing.
+    core = _core()
+    _feed(core, _hb(), 0.0)
+    for t in (0.1, 0.2):
+        core.handle(Incoming(Link.AUTOPILOT, _ack(mavlink.MAV_RESULT_ACCEPTED)), t)  # wheels, gyro
+    t, sent = 0.2, []
+    while t < 6.0:
+        t = round(t + 0.1, 6)
+        local = mavlink.MAVLink_local_position_ned_message(int(t * 1000), 0, 0, 0, 0, 0, 0)
+        local.pack(mavlink.MAVLink(None, srcSystem=1, srcComponent=1))
+        sent += _requests(_feed(core, local, t))
+        sent += _requests(core.tick(t))
+    # Only the missing one (asked again while unacknowledged), at 2 Hz.
+    assert set(sent) == {("interval", mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 500_000.0)}
 
 
 def test_stream_request_retried_without_ack_then_falls_back() -> None:

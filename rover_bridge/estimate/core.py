@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from rover_bridge import frames
@@ -57,8 +57,9 @@ from rover_bridge.params import Profile
 log = logging.getLogger("rover_bridge.estimate.core")
 
 WHEEL_DISTANCE_ID = 9000
-LOCAL_POSITION_RATE_HZ = 2.0  # asked for when ODOMETRY is in the autopilot's frame: enough to anchor
-POSE_HISTORY = 128  # filter poses kept until anchored: several seconds at the sensors' rates
+LOCAL_POSITION_RATE_HZ = 2.0  # LOCAL_POSITION_NED (to anchor ODOMETRY) and GLOBAL_POSITION_INT (targets)
+FIX_HISTORY = 120  # LOCAL_POSITION_NED fixes kept with our pose (a minute at 2 Hz)
+POSE_HISTORY = 256  # filter poses kept (anchoring, targets tied to a fix): a few seconds at the sensors' rates
 SILENCE_S = 0.5  # no measurement at all for this long: the next one restarts the motion (see _after_silence)
 GYRO_MAX_RAD_S = 50.0  # beyond any rover: such a "rate" is corrupt data, not a measurement
 GYRO_FOR_SLIP_MAX_AGE_S = 0.25
@@ -90,7 +91,7 @@ class EstimateCore:
     # What handle() may read from the autopilot link (BridgeCore decodes nothing else from it); of the
     # gyro messages only those `gyro_reads` names at the time.
     AUTOPILOT_READS = frozenset({"COMMAND_LONG", "HEARTBEAT", "WHEEL_DISTANCE", "ATTITUDE", "SCALED_IMU", "RAW_IMU",
-                                 "SYSTEM_TIME", "COMMAND_ACK", "LOCAL_POSITION_NED"})
+                                 "SYSTEM_TIME", "COMMAND_ACK", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"})
     ALL_GYRO_IDS = ALL_GYRO_IDS
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter) -> None:
@@ -118,11 +119,13 @@ class EstimateCore:
         gyro_name = self.gyro.request_name
         streams = [Stream("WHEEL_DISTANCE", WHEEL_DISTANCE_ID, mavlink.MAV_DATA_STREAM_EXTRA1),
                    Stream(gyro_name.upper(), *GYRO_MESSAGES[gyro_name])]
-        if self.frame.enabled:
-            # Anchoring needs the autopilot's position; before it has one (a cold start) it sends none.
-            streams.append(Stream("LOCAL_POSITION_NED", mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
-                                  mavlink.MAV_DATA_STREAM_POSITION, rate_hz=LOCAL_POSITION_RATE_HZ,
-                                  check_rate=False))
+        # The autopilot's position: anchoring ODOMETRY in its frame (asked for at once: the first ODOMETRY
+        # waits for it), and tying position targets to it (local frame, GPS; rover_bridge.command.navigation:
+        # asked for only if no one else has, see streams). None before a fix (a cold start): no rate check.
+        for name in ("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"):
+            at_once = name == "LOCAL_POSITION_NED" and self.frame.enabled
+            streams.append(Stream(name, getattr(mavlink, f"MAVLINK_MSG_ID_{name}"), mavlink.MAV_DATA_STREAM_POSITION,
+                                  rate_hz=LOCAL_POSITION_RATE_HZ, check_rate=False, if_missing=not at_once))
         self.streams = StreamRequests(streams, est.stream_rate_hz, identity, reporter)
         self.raw_pose = Pose2D()
         self._jumps_said: set[str] = set()
@@ -141,6 +144,12 @@ class EstimateCore:
         self._last_wheel_fused_s: float | None = None
         self._recent: deque[tuple[float, Pose2D]] = deque(maxlen=POSE_HISTORY)  # (filter time, pose)
         self._wheel_sample: MeasuredWheels | None = None
+        # What navigation reads (rover_bridge.command.navigation.PoseSource), each with its autopilot stamp.
+        self._heading: tuple[float, float] | None = None  # (stamp, ATTITUDE yaw clockwise from north)
+        # LOCAL_POSITION_NED fixes beside the estimate's pose at their stamps (stamp, x, y, yaw, north, east):
+        # the autopilot's frame against ours, fitted over the track (rover_bridge.command.navigation).
+        self._fixes: deque[tuple[float, float, float, float, float, float]] = deque(maxlen=FIX_HISTORY)
+        self._gps: tuple[float, float, float, float] | None = None  # (arrival, stamp, lat, lon)
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -208,6 +217,43 @@ class EstimateCore:
             reset_counter=self.resets.value,
         )
 
+    # ------------------------------------------------------------------ navigation (PoseSource)
+    def nav_pose(self, now_s: float) -> Pose2D | None:
+        """The pose now for following a target; None without wheel data fused in the last WHEELS_STALE_S."""
+        fused = self._last_wheel_fused_s
+        if fused is None or now_s - fused > WHEELS_STALE_S:
+            return None
+        return self.pose_at(now_s)
+
+    def nav_pose_at(self, stamp_s: float) -> Pose2D:
+        """The estimate's pose at an autopilot stamp (a fix's, a LOCAL_POSITION_NED's)."""
+        return self._pose_at_stamp(stamp_s)
+
+    def autopilot_time_s(self, now_s: float) -> float:
+        return self.clock.autopilot_time_s(now_s)
+
+    @property
+    def heading(self) -> tuple[float, float] | None:
+        return self._heading
+
+    @property
+    def position_fixes(self) -> Sequence[tuple[float, float, float, float, float, float]]:
+        return self._fixes
+
+    @property
+    def gps(self) -> tuple[float, float, float, float] | None:
+        return self._gps
+
+    def _handle_global_position(self, msg: MAVLinkMessage, now_s: float) -> list[Outgoing]:
+        lat, lon = int(msg.lat) * 1e-7, int(msg.lon) * 1e-7
+        # ArduPilot sends GLOBAL_POSITION_INT before it has a position, with 0/0 in it: no fix.
+        if (lat == 0.0 and lon == 0.0) or abs(lat) > 90.0 or abs(lon) > 180.0:
+            return []
+        t, out = self._stamp(msg.time_boot_ms * 1e-3, now_s, "GLOBAL_POSITION_INT")
+        self.streams.arrival("GLOBAL_POSITION_INT", now_s)
+        self._gps = (now_s, t, lat, lon)
+        return out
+
     # ------------------------------------------------------------------ SubCore
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
         msg = inc.msg
@@ -227,12 +273,21 @@ class EstimateCore:
         if mtype == "WHEEL_DISTANCE":
             out += self._handle_wheels(msg, now_s)
         elif mtype == "ATTITUDE":
-            self.frame.on_attitude(self.clock.rebase(msg.time_boot_ms * 1e-3, "attitude"), float(msg.yaw))
+            t_att, yaw = self.clock.rebase(msg.time_boot_ms * 1e-3, "attitude"), float(msg.yaw)
+            self.frame.on_attitude(t_att, yaw)
+            if math.isfinite(yaw):
+                self._heading = (t_att, yaw)
             out += self._handle_gyro("attitude", msg.time_boot_ms * 1e-3, float(msg.yawspeed), now_s)
         elif mtype == "LOCAL_POSITION_NED":
             t, said = self._stamp(msg.time_boot_ms * 1e-3, now_s, "LOCAL_POSITION_NED")
             out += said
+            self.streams.arrival("LOCAL_POSITION_NED", now_s)
             self.frame.on_local_position(t, float(msg.x), float(msg.y))
+            if self._have_wheels and math.isfinite(float(msg.x)) and math.isfinite(float(msg.y)):
+                at = self._pose_at_stamp(t)
+                self._fixes.append((t, at.x_m, at.y_m, at.yaw_rad, float(msg.x), float(msg.y)))
+        elif mtype == "GLOBAL_POSITION_INT":
+            out += self._handle_global_position(msg, now_s)
         elif mtype == "SCALED_IMU":
             out += self._handle_gyro("scaled_imu", msg.time_boot_ms * 1e-3, msg.zgyro * 1e-3, now_s)
         elif mtype == "RAW_IMU":
@@ -276,6 +331,8 @@ class EstimateCore:
     def reset_pose(self, pose: Pose2D, now_s: float) -> list[Outgoing]:
         """Put the estimate (and the raw wheel odometry) at `pose` (x forward, y left, yaw CCW)."""
         self.ekf.set_pose(pose)
+        self._recent.clear()  # poses before the reset are in the old frame
+        self._fixes.clear()
         self.raw_pose = Pose2D(pose.x_m, pose.y_m, wrap_angle(pose.yaw_rad))
         return self.resets.pose_reset(pose, now_s)
 
@@ -447,9 +504,14 @@ class EstimateCore:
                       wrap_angle(a.yaw_rad + f * wrap_angle(b.yaw_rad - a.yaw_rad)))
 
     def _remember_pose(self) -> None:
-        """Until the frame is anchored: the filter's pose at its time, for _pose_at_stamp."""
+        """The filter's pose at its time, for _pose_at_stamp (anchoring, targets tied to an older fix)."""
         t = self.ekf.time_s
-        if not self.frame.ready and t is not None and (not self._recent or t > self._recent[-1][0]):
+        if t is None:
+            return
+        if self._recent and t < self._recent[-1][0]:
+            self._recent.clear()  # the filter's clock restarted (a reboot): older poses are another epoch
+            self._fixes.clear()
+        if not self._recent or t > self._recent[-1][0]:
             self._recent.append((t, self.ekf.pose))
 
     def _odometry(self, now_s: float) -> list[Outgoing]:

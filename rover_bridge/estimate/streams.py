@@ -8,6 +8,11 @@ message's group is asked for with REQUEST_DATA_STREAM instead (EXTRA1 for WHEEL_
 ATTITUDE, RAW_SENSORS for the IMU messages; ArduPilot 4.7 refuses the interval for
 WHEEL_DISTANCE). Arrival rates are measured over RATE_WINDOW_S; a stream below SLOW_FRACTION of the
 requested rate is asked for again and reported (STATUSTEXT, at most every SLOW_REPORT_INTERVAL_S).
+
+A stream marked `if_missing` (the autopilot's position, which navigation wants at a couple of Hz) is
+watched first and asked for only when it does not already arrive at its rate: a ground station that
+asked for it faster (a map at 10 Hz) must not be slowed down by the bridge's request, since
+SET_MESSAGE_INTERVAL is per link, not per client, and the last request wins.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ class Stream:
     measured_hz: float | None = None
     rate_hz: float | None = None  # None: the requests' common rate ([estimator] stream_rate_hz)
     check_rate: bool = True  # False for a stream the autopilot may rightly not send (no position yet)
+    if_missing: bool = False  # watched first, asked for only if it does not come (module doc)
 
 
 class StreamRequests:
@@ -80,6 +86,8 @@ class StreamRequests:
         self.counters["stream_restarts"] += 1
         for s in self.streams:
             s.state, s.attempts, s.window_start_s, s.arrivals = "queued", 0, None, 0
+            if s.if_missing:
+                s.state, s.window_start_s = "watching", now_s
 
     def arrival(self, name: str, now_s: float) -> None:
         """One message of stream `name` arrived (counted once its rate window is open)."""
@@ -129,13 +137,18 @@ class StreamRequests:
     def check_rates(self, now_s: float) -> list[Outgoing]:
         """Close every full rate window; ask again for (and report) a stream that arrives too slowly."""
         out: list[Outgoing] = []
-        wanted = self.rate_hz
         for s in self.streams:
             if s.window_start_s is None or now_s < s.window_start_s + RATE_WINDOW_S:
                 continue
+            wanted = s.rate_hz or self.rate_hz
             hz = s.arrivals / (now_s - s.window_start_s)
             s.measured_hz = hz
             s.window_start_s, s.arrivals = now_s, 0
+            if s.state == "watching":
+                if hz < SLOW_FRACTION * wanted:  # not coming (fast enough): now ask for it
+                    s.state, s.window_start_s = "queued", None
+                    out += self.pump(now_s)
+                continue
             if hz >= SLOW_FRACTION * wanted or not s.check_rate:
                 continue
             self.counters["stream_slow"] += 1
@@ -161,7 +174,7 @@ class StreamRequests:
         elif any(s.state == "queued" for s in self.streams):
             out.append(now_s)
         out += [s.window_start_s + RATE_WINDOW_S for s in self.streams
-                if s.window_start_s is not None and s.check_rate]
+                if s.window_start_s is not None and (s.check_rate or s.state == "watching")]
         return out
 
     # ------------------------------------------------------------------ messages
