@@ -118,6 +118,34 @@ class CommandParams:
 
 
 @dataclass(frozen=True, slots=True)
+class NavigationParams:
+    speed_m_s: float = _p(0.5, "Cruise speed to a position target that gives none (DO_CHANGE_SPEED changes it); "
+                          "always within limits.max_linear_m_s.", unit="m/s", lo=0.0, lo_open=True, hi=50.0)
+    arrival_radius_m: float = _p(0.15, "A position target is reached within this distance.", unit="m",
+                                 lo=0.02, hi=10.0)
+    max_distance_m: float = _p(200.0, "Position targets farther than this from the rover are refused.", unit="m",
+                               lo=1.0, hi=1000.0)
+    gcs_timeout_s: float = _p(
+        5.0, "While a position target is followed (no request stream to time out), no ground-station "
+        "HEARTBEAT for this long stops the rover: nobody is watching.", unit="s", lo=1.0, hi=60.0)
+    gps_timeout_s: float = _p(
+        2.0, "Global targets need the autopilot's GLOBAL_POSITION_INT no older than this; otherwise refused.",
+        unit="s", lo=0.2, hi=30.0)
+    turn_in_place_deg: float = _p(
+        45.0, "Heading error above which the rover turns in place before it drives toward the target.",
+        unit="deg", lo=5.0, hi=180.0)
+    lookahead_m: float = _p(0.5, "Pure pursuit: the shortest look-ahead along the leg (it grows with speed).",
+                            unit="m", lo=0.05, hi=20.0)
+    yaw_tolerance_deg: float = _p(4.0, "A final heading (yaw given with the target) is reached within this.",
+                                  unit="deg", lo=0.5, hi=45.0)
+    report_hz: float = _p(4.0, "While a target is followed: NAV_CONTROLLER_OUTPUT and POSITION_TARGET_* to the "
+                          "ground stations at this rate.", unit="Hz", lo=0.2, hi=50.0)
+    guided_modes: tuple[int, ...] = _p(
+        (15,), "Autopilot modes (HEARTBEAT custom_mode) in which position targets are taken (ArduPilot Rover: "
+        "15 = GUIDED); a change to another mode cancels the target.", lo=0, hi=4294967295)
+
+
+@dataclass(frozen=True, slots=True)
 class OutputParams:
     mode: str = _p(
         "rc_override", "How wheels are driven: RC_CHANNELS_OVERRIDE (times out safely) or DO_SET_SERVO "
@@ -311,6 +339,7 @@ class Profile:
     robot: RobotParams = field(default_factory=RobotParams)
     limits: LimitsParams = field(default_factory=LimitsParams)
     command: CommandParams = field(default_factory=CommandParams)
+    navigation: NavigationParams = field(default_factory=NavigationParams)
     output: OutputParams = field(default_factory=OutputParams)
     control: ControlParams = field(default_factory=ControlParams)
     encoders: EncoderParams = field(default_factory=EncoderParams)

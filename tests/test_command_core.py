@@ -29,7 +29,6 @@ from rover_bridge.params import LimitsParams, Profile
 VEL_YAW_RATE = 1479  # use vx, vy, vz, yaw_rate
 VEL_ONLY = 3527  # use vx, vy, vz
 VEL_YAW = 2503  # use vx, vy, vz, yaw
-POSITION_ONLY = 3576
 ACCEL_ONLY = 3135
 IGNORE = 65535  # ch1-8 "leave alone"
 PERIOD_S = 0.05  # default rate_hz = 20
@@ -339,8 +338,8 @@ def test_non_finite_requests_are_rejected_counted_and_only_neutral_reaches_the_w
     assert state(rig) is CommandState.IDLE
 
 
-@pytest.mark.parametrize(("mask", "reason"),
-                         [(POSITION_ONLY, "position_only"), (ACCEL_ONLY, "acceleration_only")])
+# Position-only requests are targets now ("go there"): tests/test_goto.py.
+@pytest.mark.parametrize(("mask", "reason"), [(ACCEL_ONLY, "acceleration_only")])
 def test_unsupported_requests_reported_once_per_source(mask: int, reason: str) -> None:
     rig = ready()
     other = mavlink.MAVLink(None, srcSystem=254, srcComponent=1)

@@ -7,12 +7,16 @@ full package pulls in GUI and 3D-map dependencies a test machine does not need.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
+import math
 import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from lockstep import free_udp_port
@@ -39,9 +43,12 @@ def mavproxy_env(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     return env
 
 
-def test_mavproxy_velocity_command_drives_the_rover_straight(mavproxy_env: dict[str, str], tmp_path: Path) -> None:
+@contextlib.contextmanager
+def rover_with_mavproxy(env: dict[str, str], tmp_path: Path, vehicle: VehicleConfig,
+                        modules: str = "cmdlong") -> Iterator[tuple[Emulator, Any]]:
+    """The emulator (stepped by the test), the bridge process, and MAVProxy on the bridge's GCS port."""
     ap_port, gcs_port = free_udp_port(), free_udp_port()
-    emu = Emulator(VehicleConfig(start_armed=True), seed=9)
+    emu = Emulator(vehicle, seed=9)
     emu.open(f"udpin:127.0.0.1:{ap_port}")
     bridge = subprocess.Popen(
         [sys.executable, "-m", "rover_bridge", "run", "--params", str(REPO / "params" / "default.toml"),
@@ -49,11 +56,25 @@ def test_mavproxy_velocity_command_drives_the_rover_straight(mavproxy_env: dict[
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     mavproxy = subprocess.Popen(
         [sys.executable, "-m", "MAVProxy.mavproxy", f"--master=udpout:127.0.0.1:{gcs_port}", "--nowait",
-         "--default-modules=cmdlong", f"--state-basedir={tmp_path}"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=mavproxy_env, text=True,
+         f"--default-modules={modules}", f"--state-basedir={tmp_path}"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True,
         cwd=tmp_path)
     assert mavproxy.stdin is not None
     try:
+        yield emu, mavproxy.stdin
+    finally:
+        for proc in (mavproxy, bridge):
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        emu.close()
+
+
+def test_mavproxy_velocity_command_drives_the_rover_straight(mavproxy_env: dict[str, str], tmp_path: Path) -> None:
+    with rover_with_mavproxy(mavproxy_env, tmp_path, VehicleConfig(start_armed=True)) as (emu, stdin):
         last = time.monotonic()
         deadline = last + 40.0
         sending_since: float | None = None
@@ -67,8 +88,8 @@ def test_mavproxy_velocity_command_drives_the_rover_straight(mavproxy_env: dict[
             if sending_since is None and emu.counters.get("override_accepted", 0) > 0:
                 sending_since = now
             if sending_since is not None and now >= next_cmd:
-                mavproxy.stdin.write("velocity 0.5 0 0\n")
-                mavproxy.stdin.flush()
+                stdin.write("velocity 0.5 0 0\n")
+                stdin.flush()
                 next_cmd = now + 0.2  # inside the bridge's 0.5 s setpoint timeout
             if sending_since is not None and now - sending_since > 5.0:
                 break
@@ -77,12 +98,38 @@ def test_mavproxy_velocity_command_drives_the_rover_straight(mavproxy_env: dict[
         assert truth.v_m_s == pytest.approx(0.5, abs=0.05)
         assert truth.x_m > 1.5  # north: straight ahead from the start pose
         assert abs(truth.y_m) < 0.02 and abs(truth.yaw_rad) < 0.01
-    finally:
-        for proc in (mavproxy, bridge):
-            proc.terminate()
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        emu.close()
+
+def test_mavproxy_guided_drives_the_rover_to_the_point(mavproxy_env: dict[str, str], tmp_path: Path) -> None:
+    # `mode guided`, then `guided LAT LON ALT`: a MISSION_ITEM_INT with current = 2, what Mission Planner's
+    # "Fly to here" sends too. Sent once; the bridge follows it on its own estimate to the point.
+    vehicle = VehicleConfig(start_armed=True)
+    earth = 6378137.0
+    north, east = 2.0, 1.0
+    lat = vehicle.origin_lat_deg + math.degrees(north / earth)
+    lon = vehicle.origin_lon_deg + math.degrees(east / (earth * math.cos(math.radians(vehicle.origin_lat_deg))))
+    with rover_with_mavproxy(mavproxy_env, tmp_path, vehicle, modules="cmdlong,mode") as (emu, stdin):
+        last = time.monotonic()
+        deadline = last + 60.0
+        online_since: float | None = None
+        step = 0
+        while True:
+            now = time.monotonic()
+            assert now < deadline, f"MAVProxy's guided target was not reached (truth {emu.truth})"
+            emu.step(max(0.001, now - last))
+            last = now
+            if online_since is None and emu.counters.get("override_accepted", 0) > 0:
+                online_since = now  # the bridge knows the vehicle, MAVProxy has its heartbeat by now
+            if online_since is not None:
+                if step == 0 and now - online_since > 2.0:
+                    stdin.write("mode guided\n")
+                    stdin.flush()
+                    step = 1
+                elif step == 1 and emu.mode == 15 and now - online_since > 4.0:
+                    stdin.write(f"guided {lat:.8f} {lon:.8f} 0\n")
+                    stdin.flush()
+                    step = 2
+                elif step == 2 and emu.truth.x_m > 1.0 and abs(emu.truth.v_m_s) < 1e-3:
+                    break
+            time.sleep(0.005)
+        truth = emu.truth
+        assert math.hypot(truth.x_m - north, truth.y_m - east) <= 0.15

@@ -6,6 +6,7 @@ MAVSDK listens on the bridge's ground-station port as QGroundControl would.
 
 from __future__ import annotations
 
+import math
 import socket
 import subprocess
 import sys
@@ -111,3 +112,34 @@ def test_mavsdk_sees_the_vehicle_go_when_the_autopilot_stops(setup: Setup) -> No
     assert gone_after is not None, "MAVSDK still shows the vehicle connected 15 s after its autopilot stopped"
     assert 3.0 < gone_after < 9.0  # the bridge's 3 s, then MAVSDK's own 3 s
     assert setup.bridge.poll() is None  # the bridge itself is still running (and says why on STATUSTEXT)
+
+
+def test_mavsdk_goto_location_drives_the_rover_to_the_point(setup: Setup) -> None:
+    # Action.goto_location on ArduPilot: DO_SET_MODE (Offboard = GUIDED for a rover), then on its ACK a
+    # COMMAND_INT DO_REPOSITION with CHANGE_MODE, the yaw in radians; MAVSDK waits for the ACK from the
+    # autopilot's ids. The bridge answers for the autopilot and drives there, then turns to the yaw.
+    from mavsdk.plugins.action import Action, ActionResult
+
+    system = setup.mavsdk.first_autopilot(30.0)
+    assert system is not None
+    assert wait_for(system.is_connected, 10.0) is not None
+    time.sleep(3.0)  # the bridge's streams up, the gyro settled
+    earth = 6378137.0
+    vehicle = VehicleConfig()
+    north, east = 1.5, -1.0
+    lat = vehicle.origin_lat_deg + math.degrees(north / earth)
+    lon = vehicle.origin_lon_deg + math.degrees(east / (earth * math.cos(math.radians(vehicle.origin_lat_deg))))
+    action = Action(system)
+    assert action.goto_location(lat, lon, 584.0, 90.0) == ActionResult.SUCCESS
+    assert setup.emu.mode == 15
+
+    def arrived() -> bool:
+        with setup.clock.lock:
+            truth = setup.emu.truth
+        return (math.hypot(truth.x_m - north, truth.y_m - east) <= 0.15 and abs(truth.v_m_s) < 1e-3
+                and abs(truth.yaw_rate_rad_s) < 1e-3)
+
+    assert wait_for(arrived, 30.0) is not None, f"not reached: {setup.emu.truth}"
+    with setup.clock.lock:
+        truth = setup.emu.truth
+    assert abs(math.degrees(math.remainder(truth.yaw_rad - math.pi / 2, 2 * math.pi))) <= 5.0  # facing east

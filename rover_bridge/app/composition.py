@@ -36,8 +36,9 @@ class BridgeCore:
         self.profile = profile
         self.identity = Identity.from_profile(profile)
         self.reporter = Reporter(self.identity)
-        self.command = CommandCore(profile, self.identity, self.reporter)
         self.estimate = EstimateCore(profile, self.identity, self.reporter)
+        # Position targets are followed on the estimate flow's pose (rover_bridge.command.navigation).
+        self.command = CommandCore(profile, self.identity, self.reporter, pose_source=self.estimate)
         # [security] in front of both cores: a refused frame reaches neither, nor the autopilot.
         self.gate = CommandGate(profile, self.identity, self.reporter)
         self._subcores: tuple[SubCore, ...] = (self.command, self.estimate)

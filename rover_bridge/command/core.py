@@ -39,6 +39,16 @@ Decisions (the README repeats them for users):
 - Closed loop (control.mode): the wheel targets go through the per-wheel speed loop
   (rover_bridge.command.wheel_control) on the speeds the estimate flow measured; while the estimator
   reports slip (control.slip_compensation) no wheel is driven faster than when the slip began.
+- Position targets ("go here": SET_POSITION_TARGET_* with x/y used, MISSION_ITEM(_INT) current = 2,
+  DO_REPOSITION; rover_bridge.command.targets, .navigation, .navigator) are taken only in one of
+  navigation.guided_modes (a GCS's accepted DO_SET_MODE counts until the next heartbeat; DO_REPOSITION's
+  CHANGE_MODE asks the autopilot for GUIDED and starts on its ACK), armed, with a ground station's
+  HEARTBEAT fresh, and within navigation.max_distance_m; refusals are answered (MISSION_ACK, COMMAND_ACK,
+  STATUSTEXT) and consumed. A running target is a request with no setpoint timeout; _watch_goal ends it
+  (braking through the limiter) when the mode leaves GUIDED, the ground station falls silent for
+  navigation.gcs_timeout_s, or the estimate's pose is reset or lost; link loss, disarm and HOLD end it as
+  they end any request; a velocity request or MANUAL_CONTROL takes over for good; arrival brakes to a
+  stop. Targets, like requests, are consumed only when addressed to the vehicle.
 - shutdown (every exit path of the shell): neutral, release, then a TIMESYNC probe; STOPPING until
   the autopilot answers the probe (proof that it parsed the stop) or stop_confirm_timeout_s passes,
   resending every STOP_RESEND_S; then STOPPED, and nothing more is sent.
@@ -52,6 +62,8 @@ import enum
 import logging
 import math
 
+from rover_bridge.command.navigation import PoseSource, Unresolved
+from rover_bridge.command.navigator import GotoRequest, Navigator
 from rover_bridge.command.outputs import OutputMap, WheelPwm
 from rover_bridge.command.setpoints import (
     REQUEST_TYPES,
@@ -60,6 +72,16 @@ from rover_bridge.command.setpoints import (
     Rejected,
     Request,
     decode_request,
+)
+from rover_bridge.command.targets import (
+    Refused,
+    SpeedChange,
+    Target,
+    changes_mode,
+    decode_command,
+    decode_mission_item,
+    decode_position_target,
+    uses_position,
 )
 from rover_bridge.command.wheel_control import WheelSpeedLoop, WiringFault, WiringMonitor
 from rover_bridge.kinematics import DiffDrive, MeasuredWheels, Twist2D, WheelSpeeds
@@ -122,6 +144,16 @@ EMERGENCY_PROBE_TS1 = STOP_PROBE_TAG + 0xFFFF_FFFF  # the stop guard's probe (ne
 # possibly one already in flight) takes over after this long unless the autopilot refused the mode.
 HOLD_ANTICIPATION_S = 1.5
 MODE_REQUESTS = frozenset({"SET_MODE", "COMMAND_LONG", "COMMAND_INT"})
+POSITION_TARGETS = frozenset({"SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT"})
+MISSION_ITEMS = frozenset({"MISSION_ITEM_INT", "MISSION_ITEM"})
+GOTO_COMMANDS = frozenset({mavlink.MAV_CMD_DO_REPOSITION, mavlink.MAV_CMD_DO_CHANGE_SPEED})
+GUIDED_CURRENT = 2  # MISSION_ITEM(_INT).current: a guided "go here", not a mission upload
+# What the autopilot says about its own navigation: while the bridge follows a target, the autopilot (whose
+# wheels the bridge drives) is not navigating, so its version would contradict the bridge's to the GCS.
+AUTOPILOT_NAV_ECHOES = frozenset({"NAV_CONTROLLER_OUTPUT", "POSITION_TARGET_GLOBAL_INT",
+                                  "POSITION_TARGET_LOCAL_NED", "MISSION_ITEM_REACHED"})
+MODE_CHANGE_TIMEOUT_S = 1.0  # DO_REPOSITION's "change to GUIDED": the autopilot's ACK is awaited this long
+MALFORMED = "malformed"
 
 
 def requested_custom_mode(msg: MAVLinkMessage, vehicle: int | None) -> int | None:
@@ -143,10 +175,18 @@ def requested_custom_mode(msg: MAVLinkMessage, vehicle: int | None) -> int | Non
 _ACK_OK = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
 
 
+class _ModeChange:
+    """A DO_REPOSITION that asked for GUIDED first: what to start once the autopilot accepts the mode."""
+
+    def __init__(self, msg: MAVLinkMessage, goal: GotoRequest, notes: frozenset[str], deadline_s: float) -> None:
+        self.msg, self.goal, self.notes, self.deadline_s = msg, goal, notes, deadline_s
+
+
 class CommandCore:
     """Messages and the current time in, override messages out (see the module doc for the rules)."""
 
-    def __init__(self, profile: Profile, identity: Identity, reporter: Reporter) -> None:
+    def __init__(self, profile: Profile, identity: Identity, reporter: Reporter,
+                 pose_source: PoseSource | None = None) -> None:
         self.profile = profile
         self.identity = identity
         self.reporter = reporter
@@ -157,7 +197,7 @@ class CommandCore:
         self.state = CommandState.WAITING
         self.counters: dict[str, int] = {}
         self.last_wheel_pwm: WheelPwm | None = None
-        self.request: Request | None = None  # headings already made absolute
+        self.request: Request | GotoRequest | None = None  # headings already made absolute
         self._request_s: float | None = None
         self._last_heartbeat_s: float | None = None
         self._armed = False
@@ -181,6 +221,13 @@ class CommandCore:
         self._custom_mode: int | None = None  # the autopilot's mode (HEARTBEAT custom_mode)
         self._hold_requested_s: float | None = None  # a GCS asked for a stop mode; not yet reported
         self._stop_modes = frozenset(profile.safety.stop_modes)
+        # Position targets (rover_bridge.command.navigator); the mode a DO_SET_MODE the autopilot accepted
+        # asked for, until its next heartbeat (ArduPilot sends one at once after a mode change) says it.
+        self.nav = Navigator(profile, identity, reporter, pose_source)
+        self._guided_modes = frozenset(profile.navigation.guided_modes)
+        self._mode_requested: int | None = None  # the last mode a GCS's DO_SET_MODE asked for
+        self._anticipated_mode: int | None = None
+        self._mode_change: _ModeChange | None = None
         # Stop confirmation (see shutdown): when it began, when it was last sent, the probes in flight.
         self._stop_began_s = 0.0
         self._stop_sent_s = 0.0
@@ -207,7 +254,7 @@ class CommandCore:
     # ----------------------------------------------------------------- SubCore protocol
 
     # What handle() reads from the autopilot link (BridgeCore decodes nothing else from it).
-    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC"})
+    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC"}) | AUTOPILOT_NAV_ECHOES
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
         if self.state in _OVER:
@@ -221,7 +268,18 @@ class CommandCore:
                 self._on_attitude(msg, now_s)
             elif kind == "COMMAND_ACK":
                 return self._on_command_ack(msg, now_s)
+            elif kind in AUTOPILOT_NAV_ECHOES:
+                return Reaction(consumed=True) if self._echo_to_hide(msg) else NOTHING
             return NOTHING
+        if kind == "HEARTBEAT":
+            self.nav.on_gcs_heartbeat(msg, now_s)
+            return NOTHING
+        try:
+            goto = self._is_goto(msg, kind)
+        except (AttributeError, TypeError, ValueError, OverflowError):
+            goto = False  # a malformed frame: the paths below judge it as they always did
+        if goto:
+            return self._on_goto(inc, now_s)
         if kind in REQUEST_TYPES:
             return self._on_request(inc, now_s)
         if kind in MODE_REQUESTS:
@@ -233,8 +291,13 @@ class CommandCore:
             return []
         if self.state is CommandState.STOPPING:
             return self._stop_tick(now_s)
+        out = self._mode_change_tick(now_s)
         due = self._next_output_s is None or now_s >= self._next_output_s
-        return self._advance(now_s, force_output=due)
+        out += self._advance(now_s, force_output=due)
+        goal = self.request
+        if isinstance(goal, GotoRequest) and self.state is CommandState.ACTIVE:
+            out += self.nav.report(goal, now_s)
+        return out
 
     def next_deadline_s(self, now_s: float) -> float:
         if self.state is CommandState.STOPPING:
@@ -243,8 +306,16 @@ class CommandCore:
         if self.state is CommandState.STOPPED or self.identity.vehicle_system_id is None:
             return now_s + self.period_s  # nothing can be sent yet; look again a period later
         deadlines = [now_s if self._next_output_s is None else self._next_output_s]
-        if self.state is CommandState.ACTIVE and self._request_s is not None:
+        goal = self.request
+        if isinstance(goal, GotoRequest):
+            # A target needs no stream (no setpoint timeout); its own deadlines: feedback, GCS silence.
+            for deadline in (self.nav.next_report_s, self.nav.gcs_deadline_s()):
+                if deadline is not None:
+                    deadlines.append(deadline)
+        elif self.state is CommandState.ACTIVE and self._request_s is not None:
             deadlines.append(self._request_s + self.profile.command.setpoint_timeout_s)
+        if self._mode_change is not None:
+            deadlines.append(self._mode_change.deadline_s)
         if self._last_heartbeat_s is not None and self.state is not CommandState.LINK_LOST:
             deadlines.append(self._last_heartbeat_s + self.profile.safety.heartbeat_timeout_s)
         return min(deadlines)
@@ -344,6 +415,9 @@ class CommandCore:
         self._last_heartbeat_s = now_s
         self._armed = bool(int(msg.base_mode) & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         self._custom_mode = int(msg.custom_mode)
+        self._anticipated_mode = None  # the heartbeat says the mode from now on
+        if self._custom_mode not in self._guided_modes:
+            self.nav.cruise_m_s = None  # DO_CHANGE_SPEED lasts while in GUIDED (ArduPilot: reset on entry)
         if not self._armed and self._wiring_fault is not None:
             # Disarming is how an operator says "fixed, try again" (a stuck wheel freed, a wire changed).
             self._wiring_fault = None
@@ -366,6 +440,8 @@ class CommandCore:
         """A ground station asks the vehicle for a mode (forwarded as is). A stop mode is acted on at
         once: the heartbeat that reports it may be a second away, and a Hold button must stop now."""
         mode = requested_custom_mode(msg, self.identity.vehicle_system_id)
+        if mode is not None and msg.get_type() != "SET_MODE":
+            self._mode_requested = mode  # its ACK tells whether the autopilot took it
         if mode is None or mode not in self._stop_modes:
             return NOTHING
         self._hold_requested_s = now_s
@@ -374,8 +450,13 @@ class CommandCore:
 
     def _on_command_ack(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
         if int(msg.command) == mavlink.MAV_CMD_DO_SET_MODE:
+            if self._mode_change is not None and self._ack_is_ours(msg):
+                return self._on_mode_change_ack(int(msg.result), now_s)
             if self._hold_requested_s is not None and int(msg.result) not in _ACK_OK:
                 self._hold_requested_s = None  # the autopilot refused the stop mode: its heartbeat governs
+            if int(msg.result) == mavlink.MAV_RESULT_ACCEPTED and self._mode_requested is not None:
+                self._anticipated_mode = self._mode_requested  # a GCS's mode change, before its heartbeat
+                self._mode_requested = None
             return NOTHING
         if self.outputs.mode != "servo" or int(msg.command) != mavlink.MAV_CMD_DO_SET_SERVO:
             return NOTHING
@@ -401,14 +482,20 @@ class CommandCore:
         return (int(msg.target_system) == vehicle
                 and int(msg.target_component) in self.profile.command.accept_target_components)
 
-    def _on_request(self, inc: Incoming, now_s: float) -> Reaction:
-        msg = inc.msg
+    def _for_vehicle(self, msg: MAVLinkMessage) -> bool:
+        """Addressed to the vehicle, which is known: ours to act on (else forwarded untouched, counted)."""
         vehicle = self.identity.vehicle_system_id
         if vehicle is None:
             self._count("forwarded.vehicle_unknown")
-            return NOTHING
+            return False
         if not self._addressed(msg, vehicle):
             self._count("forwarded.not_for_vehicle")
+            return False
+        return True
+
+    def _on_request(self, inc: Incoming, now_s: float) -> Reaction:
+        msg = inc.msg
+        if not self._for_vehicle(msg):
             return NOTHING
         source = (msg.get_srcSystem(), msg.get_srcComponent())
         if not self._authorised(inc):
@@ -446,6 +533,10 @@ class CommandCore:
             self._count("dropped.fault")
             return Reaction(consumed=True, out=tuple(out))
         self._count("requests.accepted")
+        if isinstance(self.request, GotoRequest):
+            # A velocity request (or MANUAL_CONTROL) takes over; the target does not resume afterwards.
+            self._count("goto.cancelled.velocity")
+            out += self.nav.cancelled(f"velocity from {source[0]}:{source[1]}", now_s)
         self.request, self._request_s, self._refused = request, now_s, False
         out += self._advance(now_s, force_output=True)
         return Reaction(consumed=True, out=tuple(out))
@@ -461,7 +552,8 @@ class CommandCore:
     def _advance(self, now_s: float, force_output: bool) -> list[Outgoing]:
         """Update the state for `now_s`; send outputs if forced, due to a state change, or braking done."""
         before = self.state
-        out = self._set_state(self._evaluate(now_s), now_s)
+        out = self._watch_goal(now_s)
+        out += self._set_state(self._evaluate(now_s), now_s)
         if self.identity.vehicle_system_id is not None and (force_output or self.state is not before):
             out += self._output(now_s)
         return out
@@ -491,6 +583,8 @@ class CommandCore:
             return CommandState.HOLD
         if self.request is None or self._request_s is None:
             return CommandState.REFUSED if self._refused else CommandState.IDLE
+        if isinstance(self.request, GotoRequest):
+            return CommandState.ACTIVE  # no setpoint timeout: _watch_goal ends it (the module doc)
         if now_s >= self._request_s + self.profile.command.setpoint_timeout_s or self._target(now_s) is None:
             return CommandState.BRAKING
         return CommandState.ACTIVE
@@ -517,7 +611,13 @@ class CommandCore:
         vehicle = self.identity.vehicle_system_id
         if vehicle is None:
             return []
-        target = self._target(now_s) if self.state is CommandState.ACTIVE else None
+        said: list[Outgoing] = []
+        goal = self.request
+        target: Twist2D | None
+        if self.state is CommandState.ACTIVE and isinstance(goal, GotoRequest):
+            target, said = self._goto_twist(goal, now_s)
+        else:
+            target = self._target(now_s) if self.state is CommandState.ACTIVE else None
         last = self._last_output_s
         dt_s = self.period_s if last is None else min(self.period_s, now_s - last)
         if self.state in _RAMPING:
@@ -528,7 +628,7 @@ class CommandCore:
         raw = self.drive.to_wheel_speeds(self.limiter.current)
         wheels = raw.desaturate(self.profile.robot.max_wheel_rad_s)
         moving = self.state in _DRIVING or (self.state is CommandState.HOLD and self.limiter.current != Twist2D())
-        out: list[Outgoing] = []
+        out: list[Outgoing] = said
         if self.state is CommandState.DIRECT and self._direct is not None:
             msgs = self.outputs.command(self._direct, vehicle, self.identity.autopilot_component_id)
             self.last_wheel_pwm = self._direct
@@ -578,6 +678,216 @@ class CommandCore:
     def _drop_request(self) -> None:
         self.request, self._request_s = None, None
         self.limiter.reset(Twist2D())
+
+    # ----------------------------------------------------------------- position targets
+
+    def _is_goto(self, msg: MAVLinkMessage, kind: str) -> bool:
+        """A position target, a guided MISSION_ITEM, DO_REPOSITION or DO_CHANGE_SPEED (any addressee)."""
+        if kind in POSITION_TARGETS:
+            return uses_position(msg)
+        if kind in MISSION_ITEMS:
+            return int(msg.current) == GUIDED_CURRENT and int(msg.mission_type) == mavlink.MAV_MISSION_TYPE_MISSION
+        if kind in ("COMMAND_LONG", "COMMAND_INT"):
+            return int(msg.command) in GOTO_COMMANDS
+        return False
+
+    def _in_guided(self) -> bool:
+        mode = self._anticipated_mode if self._anticipated_mode is not None else self._custom_mode
+        return mode in self._guided_modes
+
+    def _on_goto(self, inc: Incoming, now_s: float) -> Reaction:
+        """Take, refuse or answer a position target (module doc; the README's "Going to a point")."""
+        msg = inc.msg
+        if not self._for_vehicle(msg):
+            return NOTHING
+        kind = msg.get_type()
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        if not self._authorised(inc):
+            return self._goto_refused(msg, Refused(UNAUTHORISED), source, now_s)
+        decoded: Target | SpeedChange | Refused | None
+        try:
+            if kind in POSITION_TARGETS:
+                decoded = decode_position_target(msg)
+            elif kind in MISSION_ITEMS:
+                decoded = decode_mission_item(msg)
+            else:
+                decoded = decode_command(msg)
+        except (AttributeError, TypeError, ValueError, OverflowError):
+            decoded = Refused(MALFORMED, mavlink.MAV_MISSION_ERROR, mavlink.MAV_RESULT_DENIED)
+        if decoded is None:
+            return NOTHING
+        if isinstance(decoded, SpeedChange):
+            if not self._in_guided():
+                return NOTHING  # not ours to answer: the autopilot's own navigation (AUTO, RTL...) takes it
+            self.nav.set_speed(decoded)
+            self._count("goto.speed")
+            if isinstance(self.request, GotoRequest):
+                self.request = self.nav.with_speed(self.request)
+            return Reaction(consumed=True, out=(self.nav.command_ack(msg, mavlink.MAV_RESULT_ACCEPTED),))
+        if isinstance(decoded, Refused):
+            return self._goto_refused(msg, decoded, source, now_s)
+        out = self._advance(now_s, force_output=False)  # bring link / armed / mode state up to date
+        change_mode = kind == "COMMAND_INT" and changes_mode(msg)
+        reason = self._goto_state_refusal(now_s, change_mode)
+        if reason is not None:
+            refused = self._goto_refused(msg, Refused(reason), source, now_s, text=reason)
+            return Reaction(consumed=True, out=(*out, *refused.out))
+        resolved = self.nav.resolve(decoded, now_s)
+        if isinstance(resolved, Unresolved):
+            result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED if resolved.temporary else mavlink.MAV_RESULT_DENIED
+            refused = self._goto_refused(msg, Refused("unresolved", mavlink.MAV_MISSION_ERROR, result), source,
+                                         now_s, text=resolved.text)
+            return Reaction(consumed=True, out=(*out, *refused.out))
+        goal = self.nav.goal(resolved, source)
+        if not self._in_guided():  # change_mode: ask the autopilot for GUIDED, start on its ACK
+            out += self._ask_for_guided(msg, goal, decoded.notes, now_s)
+            return Reaction(consumed=True, out=tuple(out))
+        out += self._start_goal(goal, decoded.notes, now_s)
+        if kind in MISSION_ITEMS:
+            out.insert(0, self.nav.mission_ack(msg, mavlink.MAV_MISSION_ACCEPTED))
+        elif kind == "COMMAND_INT":
+            out.insert(0, self.nav.command_ack(msg, mavlink.MAV_RESULT_ACCEPTED))
+        return Reaction(consumed=True, out=tuple(out))
+
+    def _goto_state_refusal(self, now_s: float, change_mode: bool = False) -> str | None:
+        """Why no target may start now (None: it may)."""
+        if self.state in (CommandState.WAITING, CommandState.LINK_LOST):
+            return "no autopilot heartbeat"
+        if not self._armed:
+            return "disarmed"
+        if self.state is CommandState.HOLD:
+            return "autopilot in HOLD"
+        if self.state is CommandState.FAULT:
+            return "wiring fault"
+        if self.state is CommandState.DIRECT:
+            return "calibrating"
+        if not (change_mode or self._in_guided()):
+            return "autopilot not in GUIDED"
+        if not self.nav.gcs_watching(now_s):
+            return "no GCS heartbeat"
+        return None
+
+    def _goto_refused(self, msg: MAVLinkMessage, refused: Refused, source: tuple[int, int], now_s: float,
+                      text: str | None = None) -> Reaction:
+        """Refused: the answer its message gets (MISSION_ACK, COMMAND_ACK, none) and a STATUSTEXT."""
+        reason = refused.reason if text is None else text
+        key = refused.reason if text is None else text.split(",")[0]
+        self._count(f"goto.refused.{key.replace(' ', '_')}")
+        kind = msg.get_type()
+        out: list[Outgoing] = []
+        if kind in MISSION_ITEMS:
+            out.append(self.nav.mission_ack(msg, refused.mission_result))
+        elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+            out.append(self.nav.command_ack(msg, refused.command_result))
+        log.warning("target from %d:%d refused: %s", *source, reason)
+        out += self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, f"RB: target refused: {reason}", now_s,
+                                        key=f"goto.refused.{key}")
+        return Reaction(consumed=True, out=tuple(out))
+
+    def _start_goal(self, goal: GotoRequest, notes: frozenset[str], now_s: float) -> list[Outgoing]:
+        if isinstance(self.request, GotoRequest):
+            self._count("goto.replaced")
+        self._count("goto.accepted")
+        out = self.nav.begin(goal, notes, now_s)
+        self.request, self._request_s, self._refused = goal, now_s, False
+        return out + self._advance(now_s, force_output=True)
+
+    def _ask_for_guided(self, msg: MAVLinkMessage, goal: GotoRequest, notes: frozenset[str],
+                        now_s: float) -> list[Outgoing]:
+        """DO_REPOSITION with CHANGE_MODE outside GUIDED: ask the autopilot for it (as ArduPilot switches
+        itself); the target starts, and the GCS gets its ACK, when the autopilot accepts."""
+        vehicle = self.identity.vehicle_system_id
+        assert vehicle is not None
+        self._mode_change = _ModeChange(msg, goal, notes, now_s + MODE_CHANGE_TIMEOUT_S)
+        self._count("goto.mode_change")
+        ask = mavlink.MAVLink_command_long_message(
+            target_system=vehicle, target_component=self.identity.autopilot_component_id,
+            command=mavlink.MAV_CMD_DO_SET_MODE, confirmation=0,
+            param1=float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), param2=float(min(self._guided_modes)),
+            param3=0.0, param4=0.0, param5=0.0, param6=0.0, param7=0.0)
+        return [Outgoing(Link.AUTOPILOT, ask, self.identity.own_system_id, self.identity.component_id)]
+
+    def _ack_is_ours(self, msg: MAVLinkMessage) -> bool:
+        target = (int(getattr(msg, "target_system", 0)), int(getattr(msg, "target_component", 0)))
+        return target in ((0, 0), (self.identity.own_system_id, self.identity.component_id))
+
+    def _on_mode_change_ack(self, result: int, now_s: float) -> Reaction:
+        change = self._mode_change
+        assert change is not None
+        self._mode_change = None
+        source = change.goal.source
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            refused = self._goto_refused(change.msg, Refused("mode", command_result=mavlink.MAV_RESULT_FAILED),
+                                         source, now_s, text=f"GUIDED refused by the autopilot ({result})")
+            return Reaction(consumed=True, out=refused.out)
+        self._anticipated_mode = min(self._guided_modes)
+        reason = self._goto_state_refusal(now_s)
+        if reason is not None:
+            return self._goto_refused(change.msg, Refused(reason), source, now_s, text=reason)
+        out = [self.nav.command_ack(change.msg, mavlink.MAV_RESULT_ACCEPTED)]
+        out += self._start_goal(change.goal, change.notes, now_s)
+        return Reaction(consumed=True, out=tuple(out))
+
+    def _mode_change_tick(self, now_s: float) -> list[Outgoing]:
+        change = self._mode_change
+        if change is None or now_s < change.deadline_s:
+            return []
+        self._mode_change = None
+        refused = self._goto_refused(change.msg, Refused("mode", command_result=mavlink.MAV_RESULT_FAILED),
+                                     change.goal.source, now_s, text="no answer to the change to GUIDED")
+        return list(refused.out)
+
+    def _watch_goal(self, now_s: float) -> list[Outgoing]:
+        """End a running target that may not go on (module doc): said, and braked to a stop where the
+        state machine does not stop it itself (link lost, HOLD and disarmed with require_armed do)."""
+        goal = self.request
+        if not isinstance(goal, GotoRequest):
+            return []
+        hb = self._last_heartbeat_s
+        brake = True
+        if hb is None or now_s >= hb + self.profile.safety.heartbeat_timeout_s:
+            reason, brake = "autopilot link lost", False
+        elif not self._armed:
+            reason, brake = "disarmed", not self.profile.safety.require_armed
+        elif self._custom_mode in self._stop_modes or self._hold_requested_s is not None:
+            reason, brake = "HOLD", False
+        elif not self._in_guided():
+            reason = "mode left GUIDED"
+        elif not self.nav.gcs_watching(now_s):
+            reason = f"no GCS heartbeat for {self.profile.navigation.gcs_timeout_s:g} s"
+        elif goal.reset_counter != self.nav.reset_counter:
+            reason = "position estimate reset"
+        elif not self.nav.pose_fresh(now_s):
+            reason = "position estimate lost"
+        else:
+            return []
+        self._count(f"goto.cancelled.{reason.split(' ')[0].lower()}")
+        out = self.nav.cancelled(reason, now_s)
+        if brake:
+            self._brake_to_stop(now_s)
+        return out
+
+    def _brake_to_stop(self, now_s: float) -> None:
+        """The target is over: a zero request already timed out, so BRAKING ramps to zero, then IDLE."""
+        self.request = BodyVelocity(0.0, 0.0)
+        self._request_s = now_s - self.profile.command.setpoint_timeout_s
+
+    def _goto_twist(self, goal: GotoRequest, now_s: float) -> tuple[Twist2D, list[Outgoing]]:
+        step = self.nav.step(goal, now_s)
+        if step is None:  # _watch_goal ends it on the next evaluation; brake meanwhile
+            return Twist2D(), []
+        twist, status = step
+        if status.phase != "done":
+            return twist, []
+        self._count("goto.reached")
+        out = self.nav.arrived(goal, status, now_s)
+        self._brake_to_stop(now_s)
+        return Twist2D(), out
+
+    def _echo_to_hide(self, msg: MAVLinkMessage) -> bool:
+        """The autopilot's own navigation feedback, while the bridge's stands for it (AUTOPILOT_NAV_ECHOES)."""
+        return (isinstance(self.request, GotoRequest) and msg.get_srcSystem() == self.identity.vehicle_system_id
+                and msg.get_srcComponent() == self.identity.autopilot_component_id)
 
     # ----------------------------------------------------------------- wheel speed loop, wiring, slip
 

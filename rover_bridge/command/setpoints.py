@@ -19,11 +19,11 @@ Accepted (after ArduPilot Rover's handle_set_position_target_*, which is what GC
 
 Type mask: FORCE_SET (bit 9) and unknown high bits are tolerated (MAVProxy's `velocity`
 command sends 4039 = use vx, vy, vz only, FORCE_SET set). Only horizontal position (x/y,
-lat/lon) and horizontal acceleration count: altitude and vz mean nothing to a rover. Position
-is never followed (we are a velocity bridge): a request using it is rejected, with or without
-velocity, because following only the velocity of a position+velocity target would drive past
-the position for as long as the target keeps streaming. Acceleration with velocity is a
-feed-forward and is ignored (noted); acceleration alone is rejected.
+lat/lon) and horizontal acceleration count: altitude and vz mean nothing to a rover. A message with
+x and y (lat and lon) both used is a position target, which the command core hands to
+rover_bridge.command.targets before it gets here; one with only x or only y used is rejected here,
+with or without velocity (following only the velocity of a half position would drive past it).
+Acceleration with velocity is a feed-forward and is ignored (noted); acceleration alone is rejected.
 
 Non-finite values: a NaN or infinity in any field the type mask marks as used rejects the
 whole request. So does a finite value no sender can mean (OUT_OF_RANGE): a speed component beyond
