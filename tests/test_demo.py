@@ -39,6 +39,17 @@ def test_demo_runs_reports_sane_numbers_and_draws_a_png(tmp_path: Path) -> None:
     assert width > 200 and height > 200
 
 
+def test_goto_demo_reaches_each_target_and_says_how_close(tmp_path: Path) -> None:
+    proc = subprocess.run([sys.executable, "-m", "rover_bridge", "demo", "--scenario", "goto", "--quick",
+                           "--plot", "none"], cwd=tmp_path, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = [line.split() for line in proc.stdout.splitlines() if line.strip().endswith(" s") and " N " in line]
+    assert [r[4] for r in rows] == ["MISSION_ITEM_INT", "DO_REPOSITION", "LOCAL_NED", "GLOBAL_INT",
+                                    "MISSION_ITEM_INT"]
+    errors = [float(r[5]) for r in rows]
+    assert all(e <= 0.15 for e in errors), proc.stdout  # navigation.arrival_radius_m, by ground truth
+
+
 def test_demo_leaves_no_process_behind_when_interrupted(tmp_path: Path) -> None:
     import signal
     import time

@@ -1,6 +1,12 @@
 """`rover-bridge demo`: the emulator and the bridge as separate processes on UDP loopback, a
 scripted ground station driving a route through the bridge, and a report against ground truth.
 
+The `goto` scenario drives no velocity route: the ground station puts the autopilot in GUIDED and
+sends five "go here" targets, each once, the way ground stations and planners send them
+(MISSION_ITEM_INT current=2 as Mission Planner's "Fly to here" and MAVProxy's `guided`, DO_REPOSITION as
+QGroundControl and MAVSDK, SET_POSITION_TARGET_* from a script), the next when the bridge reported the
+last reached and the rover stopped; the report adds each target's arrival error by ground truth.
+
 Processes: `python -m sitl` (the autopilot, ground truth) <-> `python -m rover_bridge run`
 <-> this process (the GCS). The GCS sees everything through the bridge, as a real ground
 station would: ODOMETRY from the bridge, and the emulator's telemetry forwarded (its
@@ -85,6 +91,31 @@ def route(scale: float = 1.0) -> list[Phase]:
     return phases
 
 
+# The goto scenario's course (north, east in metres of the autopilot's frame, times the scale) and how each
+# target is sent; lat/lon ones are placed as a map click would: from the vehicle's GPS position.
+GOTO_COURSE = ((3.0, 0.0, "MISSION_ITEM_INT"), (3.0, 2.0, "DO_REPOSITION"), (1.5, 3.0, "LOCAL_NED"),
+               (0.0, 2.0, "GLOBAL_INT"), (0.0, 0.0, "MISSION_ITEM_INT"))
+GOTO_TIMEOUT_S = 30.0
+POSITION_MASK = 0x0DF8  # SET_POSITION_TARGET_*: x, y (z) used; velocity, acceleration, yaw ignored
+EARTH_RADIUS_M = 6378137.0
+
+
+@dataclass(frozen=True)
+class GotoLeg:
+    north_m: float
+    east_m: float
+    sent_as: str
+    arrival_m: float  # where the rover stopped, from the target (ground truth)
+    seconds: float  # sent -> reached and stopped
+
+    @staticmethod
+    def table(legs: list[GotoLeg]) -> str:
+        out = [f"{'go here':>14s} {'sent as':>17s} {'arrival error':>14s} {'time':>8s}"]
+        out += [f"{leg.north_m:+6.2f} N {leg.east_m:+5.2f} E {leg.sent_as:>17s} {leg.arrival_m:12.3f} m "
+                f"{leg.seconds:6.1f} s" for leg in legs]
+        return "\n".join(out)
+
+
 @dataclass
 class Series:
     """Time series the GCS collected, each stamped on the autopilot's boot clock (seconds).
@@ -103,6 +134,7 @@ class Series:
     wheel: list[tuple[float, float, float, float]] = field(default_factory=list)
     odometry_msgs: int = 0
     statustext: list[str] = field(default_factory=list)
+    goto: list[GotoLeg] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -149,6 +181,7 @@ SCENARIOS: dict[str, tuple[str, str]] = {
     "slip": ("", '[[event]]\nkind = "slip"\nwheel = "left"\nratio = 0.3\nstart_s = 6.0\nduration_s = 4.0\n'
                  '[[event]]\nkind = "slip"\nwheel = "right"\nratio = 0.25\nstart_s = 18.0\nduration_s = 3.0\n'),
     "gyro-bias": ("gyro_bias_rad_s = 0.02\n", ""),
+    "goto": ("", ""),  # targets, not a route (Demo._goto)
 }
 
 
@@ -238,6 +271,10 @@ class Demo:
         self._arrival_offset_s: float | None = None  # smallest (arrival - boot stamp) seen
         self._last_progress_s = -1.0
         self._last_phase = ""
+        self._fix: tuple[float, float, float, float] | None = None  # GLOBAL_POSITION_INT lat, lon at north, east
+        self._speed_m_s = 0.0
+        self._mode: int | None = None
+        self._reached = 0
 
     @contextlib.contextmanager
     def _processes(self, tmp: Path) -> Iterator[Any]:
@@ -285,7 +322,10 @@ class Demo:
             tmp.mkdir(parents=True, exist_ok=True)
             with self._processes(tmp) as gcs:
                 self._wait_ready(gcs)
-                self._drive(gcs)
+                if self.scenario == "goto":
+                    self._goto(gcs)
+                else:
+                    self._drive(gcs)
             for proc, name in zip(self.procs, ("sitl", "bridge"), strict=True):
                 if proc.returncode not in (0, -signal.SIGTERM):
                     text = (tmp / f"{name}.log").read_text(errors="replace")[-2000:]
@@ -369,6 +409,68 @@ class Demo:
         if self.progress is not None and self.progress.isatty():
             self.progress.write("\n")
 
+    def _pump(self, gcs: Any, wheel: WheelOdometry, state: dict[str, float]) -> None:
+        """Heartbeat at 1 Hz, take in what arrived for 10 ms."""
+        now = time.monotonic()
+        if now >= state["next_hb"]:
+            gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            state["next_hb"] = now + 1.0
+        msg = gcs.recv_match(blocking=True, timeout=0.01)
+        while msg is not None:
+            self._collect(msg, wheel)
+            msg = gcs.recv_match(blocking=False)
+
+    def _goto(self, gcs: Any) -> None:
+        """The goto scenario: GUIDED, then each target of GOTO_COURSE once (module doc)."""
+        wheel = WheelOdometry(track_width_m=0.30)
+        state = {"next_hb": 0.0}
+        start = time.monotonic()
+        gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                  15, 0, 0, 0, 0, 0)
+        while self._mode != 15 or self._fix is None or not self.series.truth:
+            if time.monotonic() - start > 10.0:
+                raise RuntimeError("the autopilot did not report GUIDED and a GPS position within 10 s")
+            self._pump(gcs, wheel, state)
+        for n, (north, east, how) in enumerate(GOTO_COURSE):
+            north, east = north * self.scale, east * self.scale
+            reached_before, sent = self._reached, time.monotonic()
+            self._send_target(gcs, north, east, how)
+            while not (self._reached > reached_before and self._speed_m_s < 0.01):
+                if time.monotonic() - sent > GOTO_TIMEOUT_S:
+                    raise RuntimeError(f"target {n + 1} ({north:.1f} N, {east:.1f} E) not reached in "
+                                       f"{GOTO_TIMEOUT_S:.0f} s")
+                self._pump(gcs, wheel, state)
+                pose = self.series.truth[-1]
+                self._say(f"go here {n + 1}/{len(GOTO_COURSE)} ({how}): {north:+.1f} N {east:+.1f} E, now "
+                          f"N {pose[1]:+6.2f} E {pose[2]:+6.2f}", f"goto {n}")
+            pose = self.series.truth[-1]
+            self.series.goto.append(GotoLeg(north, east, how, math.hypot(pose[1] - north, pose[2] - east),
+                                            time.monotonic() - sent))
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:  # the last ODOMETRY and telemetry of the stop
+            self._pump(gcs, wheel, state)
+        if self.progress is not None and self.progress.isatty():
+            self.progress.write("\n")
+
+    def _send_target(self, gcs: Any, north: float, east: float, how: str) -> None:
+        assert self._fix is not None
+        lat0, lon0, n0, e0 = self._fix  # a map click: the target's offset from where the GPS puts the rover
+        lat = lat0 + math.degrees((north - n0) / EARTH_RADIUS_M)
+        lon = lon0 + math.degrees((east - e0) / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+        lat_e7, lon_e7 = round(lat * 1e7), round(lon * 1e7)
+        if how == "MISSION_ITEM_INT":
+            gcs.mav.mission_item_int_send(1, 1, 0, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                          mavlink.MAV_CMD_NAV_WAYPOINT, 2, 0, 0, 0, 0, 0, lat_e7, lon_e7, 0.0, 0)
+        elif how == "DO_REPOSITION":
+            gcs.mav.command_int_send(1, 1, mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1,
+                                     mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat_e7, lon_e7, 0.0)
+        elif how == "LOCAL_NED":
+            gcs.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK, north,
+                                                       east, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+        else:
+            gcs.mav.set_position_target_global_int_send(0, 1, 1, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                                        POSITION_MASK, lat_e7, lon_e7, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+
     def _progress_line(self, phase: str, t: float, total_s: float) -> str:
         done = int(20 * min(1.0, t / total_s))
         pose = self.series.truth[-1] if self.series.truth else (0.0, 0.0, 0.0, 0.0)
@@ -388,6 +490,13 @@ class Demo:
             self._arrived(t, arrival)
             if not self.series.truth or t > self.series.truth[-1][0]:
                 self.series.truth.append((t, float(msg.x), float(msg.y), self._last_yaw))
+            self._speed_m_s = math.hypot(float(msg.vx), float(msg.vy))
+        elif kind == "GLOBAL_POSITION_INT" and (msg.lat or msg.lon) and self.series.truth:
+            self._fix = (msg.lat * 1e-7, msg.lon * 1e-7, self.series.truth[-1][1], self.series.truth[-1][2])
+        elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
+            self._mode = int(msg.custom_mode)
+        elif kind == "MISSION_ITEM_REACHED":
+            self._reached += 1
         elif kind == "SIMSTATE" and self._arrival_offset_s is not None:
             self._last_yaw = float(msg.yaw)
             t = arrival - self._arrival_offset_s
@@ -441,6 +550,9 @@ def plot(series: Series, errs: list[tuple[float, float, float, float, float]], p
                                (series.ekf, "EKF (ODOMETRY)", "C0-")):
         # East on the horizontal axis, north up: the map as seen from above.
         ax_map.plot([p[2] for p in data], [p[1] for p in data], style, label=label, linewidth=1.4)
+    if series.goto:
+        ax_map.plot([g.east_m for g in series.goto], [g.north_m for g in series.goto], "rx", markersize=9,
+                    label="go-here targets")
     ax_map.set_aspect("equal", adjustable="datalim")
     ax_map.set_xlabel("east [m]")
     ax_map.set_ylabel("north [m]")
@@ -469,6 +581,8 @@ def run_demo(scenario: str, scale: float, seed: int, plot_path: Path | None,
     out(f"\nrover-bridge demo: scenario {scenario!r}, {len(demo.series.truth)} truth samples, "
         f"{demo.series.odometry_msgs} ODOMETRY messages\n")
     out(summary.table())
+    if demo.series.goto:
+        out("\n" + GotoLeg.table(demo.series.goto))
     if plot_path is not None:
         try:
             plot(demo.series, errs, plot_path, f"rover-bridge demo ({scenario})")

@@ -1,0 +1,166 @@
+"""Go to a point: five targets around a ~10 m course, each sent once, judged by the emulator's truth.
+
+    python benchmarks/bench_goto.py               # default profile, ideal and imperfect motors
+    python benchmarks/bench_goto.py --frame global # the same course as lat/lon (MISSION_ITEM_INT current=2)
+
+The whole bridge core runs against the emulator in process, on its simulated clock (bench_control.Rig);
+a ground station heartbeats at 1 Hz, puts the autopilot in GUIDED and sends each target once, the next
+when the bridge has reported the last one reached and the rover has stopped. Targets are LOCAL_NED
+positions in the autopilot's frame (the emulator's LOCAL_POSITION_NED: its truth), or the same points
+as lat/lon.
+
+Per leg (targets of the issue in brackets):
+- arrival: distance from the target where the rover stopped, by truth [<= arrival_radius_m, <= 0.2 m];
+- overshoot: how far the rover went past the target along the leg [<= 0.2 m];
+- cross-track: largest distance from the straight leg, away from its ends (0.25 m) [<= 0.1 m];
+- time: from the target sent to "reached", against leg / cruise speed + turn / max angular rate
+  [within 20 %].
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench_control import Rig
+
+from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.mavlink.wire import Incoming, Link
+from rover_bridge.params import Profile, profile_from_dict
+from sitl import VehicleConfig
+
+COURSE = ((3.0, 0.0), (3.0, 2.0), (1.5, 3.0), (0.0, 2.0), (0.0, 0.0))  # north, east (m): 10.6 m
+POSITION_ONLY = 0x0DF8  # SET_POSITION_TARGET: x, y (z) used; velocity, acceleration, yaw ignored
+END_MARGIN_M = 0.25
+LEG_TIMEOUT_S = 40.0
+EARTH_RADIUS_M = 6378137.0
+
+
+class GotoRig(Rig):
+    def gcs_send(self, msg: Any) -> None:
+        wired = self.gcs.decode(bytearray(msg.pack(self.gcs)))
+        reaction = self.core.handle(Incoming(Link.GCS, wired), self.t)
+        self._to_autopilot(reaction.out)
+        if not reaction.consumed:  # the shell forwards it
+            self.emu.handle_message(wired, src_system=255, src_component=190)
+
+    def heartbeat(self) -> None:
+        self.gcs_send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                                        0, 0, 0, 3))
+
+    def run(self, seconds: float, sample: Any = None, until: Any = None) -> None:
+        end = self.t + seconds
+        while self.t < end - 1e-9:
+            if int(self.t) != int(self.t + 0.01):  # once a second
+                self.heartbeat()
+            self.step()
+            if sample is not None:
+                sample(self)
+            if until is not None and until(self):
+                return
+
+
+def lat_lon(origin: tuple[float, float], north_m: float, east_m: float) -> tuple[float, float]:
+    lat0, lon0 = origin
+    return (lat0 + math.degrees(north_m / EARTH_RADIUS_M),
+            lon0 + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(lat0)))))
+
+
+def target_message(frame: str, north_m: float, east_m: float, vehicle: VehicleConfig) -> Any:
+    if frame == "global":
+        lat, lon = lat_lon((vehicle.origin_lat_deg, vehicle.origin_lon_deg), north_m, east_m)
+        return mavlink.MAVLink_mission_item_int_message(
+            1, 1, 0, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mavlink.MAV_CMD_NAV_WAYPOINT, 2, 0,
+            0, 0, 0, 0, round(lat * 1e7), round(lon * 1e7), 0.0, mavlink.MAV_MISSION_TYPE_MISSION)
+    return mavlink.MAVLink_set_position_target_local_ned_message(
+        0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_ONLY, north_m, east_m, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+
+
+class Leg:
+    """One leg, start to target, sampled every step by truth."""
+
+    def __init__(self, rig: GotoRig, north_m: float, east_m: float) -> None:
+        truth = rig.emu.truth
+        self.sx, self.sy = truth.x_m, truth.y_m
+        self.length_m = math.hypot(north_m - self.sx, east_m - self.sy)
+        self.ux, self.uy = (north_m - self.sx) / self.length_m, (east_m - self.sy) / self.length_m
+        self.turn_rad = abs(math.remainder(math.atan2(east_m - self.sy, north_m - self.sx) - truth.yaw_rad,
+                                           2.0 * math.pi))
+        self.reached_before = rig.core.command.counters.get("goto.reached", 0)
+        self.t0 = rig.t
+        self.overshoot_m = self.crosstrack_m = 0.0
+        self.reached_s: float | None = None
+
+    def sample(self, r: GotoRig) -> None:
+        t = r.emu.truth
+        along = (t.x_m - self.sx) * self.ux + (t.y_m - self.sy) * self.uy
+        cross = abs(-(t.x_m - self.sx) * self.uy + (t.y_m - self.sy) * self.ux)
+        self.overshoot_m = max(self.overshoot_m, along - self.length_m)
+        if END_MARGIN_M <= along <= self.length_m - END_MARGIN_M:
+            self.crosstrack_m = max(self.crosstrack_m, cross)
+        if self.reached_s is None and r.core.command.counters.get("goto.reached", 0) > self.reached_before:
+            self.reached_s = r.t
+
+    def over(self, r: GotoRig) -> bool:
+        """Reached, and the rover stopped (the bridge idle again)."""
+        return (self.reached_s is not None and abs(r.emu.truth.v_m_s) < 1e-3
+                and r.core.command.state.value == "idle")
+
+
+def course(profile: Profile, vehicle: VehicleConfig, frame: str) -> list[dict[str, float]]:
+    rig = GotoRig(profile, vehicle)
+    rig.run(4.0)  # streams up, gyro bias learnt at standstill
+    rig.gcs_send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 15, 0, 0, 0, 0, 0))
+    rig.run(1.0)
+    nav = profile.navigation
+    rows: list[dict[str, float]] = []
+    for north, east in COURSE:
+        leg = Leg(rig, north, east)
+        rig.gcs_send(target_message(frame, north, east, vehicle))
+        rig.run(LEG_TIMEOUT_S, leg.sample, until=leg.over)
+        truth = rig.emu.truth
+        expected = leg.length_m / nav.speed_m_s + leg.turn_rad / profile.limits.max_angular_rad_s
+        took = (leg.reached_s if leg.reached_s is not None else math.inf) - leg.t0
+        rows.append({"north": north, "east": east, "leg_m": leg.length_m, "turn_deg": math.degrees(leg.turn_rad),
+                     "arrival_m": math.hypot(truth.x_m - north, truth.y_m - east),
+                     "overshoot_m": max(0.0, leg.overshoot_m), "crosstrack_m": leg.crosstrack_m,
+                     "time_s": took, "expected_s": expected, "time_pct": 100.0 * (took - expected) / expected})
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frame", choices=("local", "global"), default="local")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.ERROR)
+    profile = profile_from_dict({"estimator": {"stream_rate_hz": 20.0}})
+    radius = profile.navigation.arrival_radius_m
+    vehicles = {"ideal motors": VehicleConfig(start_armed=True),
+                "imperfect motors": VehicleConfig(start_armed=True, left_motor_gain=0.8, deadzone_pwm=40,
+                                                  motor_curve_exponent=1.5)}
+    ok = True
+    print(f"go to a point ({args.frame} targets), cruise {profile.navigation.speed_m_s} m/s, "
+          f"arrival radius {radius} m")
+    print(f"{'vehicle':17} {'target':>11} {'leg m':>6} {'turn':>5} {'arrive m':>8} {'over m':>7} "
+          f"{'xtrack m':>8} {'time s':>7} {'expect':>7} {'time %':>7}")
+    for name, vehicle in vehicles.items():
+        for row in course(profile, vehicle, args.frame):
+            good = (row["arrival_m"] <= min(radius, 0.2) and row["overshoot_m"] <= 0.2
+                    and row["crosstrack_m"] <= 0.1 and abs(row["time_pct"]) <= 20.0)
+            ok = ok and good
+            print(f"{name:17} {row['north']:5.1f},{row['east']:5.1f} {row['leg_m']:6.2f} {row['turn_deg']:5.0f} "
+                  f"{row['arrival_m']:8.3f} {row['overshoot_m']:7.3f} {row['crosstrack_m']:8.3f} "
+                  f"{row['time_s']:7.2f} {row['expected_s']:7.2f} {row['time_pct']:+7.1f}{'' if good else '  <-'}")
+    print("all legs within the targets" if ok else "some legs missed a target (<-)")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
