@@ -110,7 +110,7 @@ class FastMessage:
     _signed: ClassVar[bool] = False  # decode is only used where pymavlink would not check signatures
     _link_id: ClassVar[int | None] = None
 
-    _msgbuf: bytes
+    _msgbuf: bytes | bytearray
     _header: Any
 
     def get_type(self) -> str:
@@ -131,7 +131,7 @@ class FastMessage:
         b = self._msgbuf
         return b[6] if b[0] == V2 else b[4]
 
-    def get_msgbuf(self) -> bytes:
+    def get_msgbuf(self) -> bytes | bytearray:
         """The frame, as given to `decode` (header to CRC, and the signature if any)."""
         return self._msgbuf
 
@@ -153,7 +153,7 @@ class FastMessage:
         b = self._msgbuf
         return len(b) - 2 - (_SIG_LEN if b[0] == V2 and b[2] & _SIGNED else 0)
 
-    def get_payload(self) -> bytes:
+    def get_payload(self) -> bytes | bytearray:
         """As pymavlink's: the frame from byte 6 to the CRC (for MAVLink 2 that includes 4 header bytes)."""
         return self._msgbuf[6 : self._crc_at()]
 
@@ -219,19 +219,45 @@ def _field_slices(pcls: Any) -> list[tuple[str, int, int, bool]]:
     return out
 
 
+_CHAR_PROBE = b"\xffA\x00B"
+
+
+def _char_modes(pcls: Any, fields: list[tuple[str, int, int, bool]]) -> dict[str, bool]:
+    """Per char field: True when pymavlink's constructor turns it into str (text up to the first NUL,
+    ASCII with replacement) and keeps the bytes as `_<name>_raw`, False when it keeps the bytes. Found by
+    constructing one (the generated classes differ between pymavlink versions); anything else: ValueError."""
+    modes: dict[str, bool] = {}
+    zero = pcls.unpacker.unpack(bytes(pcls.unpacker.size))
+    args = [zero[tip] if not n else list(zero[tip : tip + n]) for _, tip, n, _ in fields]
+    for k, (name, _, _, is_bytes) in enumerate(fields):
+        if not is_bytes:
+            continue
+        probe = pcls(*[_CHAR_PROBE if j == k else a for j, a in enumerate(args)])
+        value, raw = getattr(probe, name), getattr(probe, f"_{name}_raw", None)
+        if value == _CHAR_PROBE and raw is None:
+            modes[name] = False
+        elif raw == _CHAR_PROBE and value == _CHAR_PROBE.split(b"\x00", 1)[0].decode("ascii", errors="replace"):
+            modes[name] = True
+        else:
+            raise ValueError(f"{pcls.msgname}.{name}: unknown char field handling")
+    return modes
+
+
 def _compile(source: str, namespace: dict[str, Any], name: str) -> Any:
     exec(compile(source, f"<fastcodec {name}>", "exec"), namespace)
     return namespace[name]
 
 
-_Decoder = Callable[[bytes, int, int, int], FastMessage | None]
+_Decoder = Callable[[bytes | bytearray, int, int, int], FastMessage | None]
 
 
 def _message_class(pcls: Any) -> type[FastMessage]:
     names = list(pcls.fieldnames)
+    raw = [f"_{name}_raw" for name, as_str in _char_modes(pcls, _field_slices(pcls)).items() if as_str]
     ns: dict[str, Any] = {
-        "__slots__": tuple(names), "__module__": __name__, "msgname": pcls.msgname, "fieldnames": pcls.fieldnames,
-        "crc_extra": pcls.crc_extra, "_type": pcls.msgname, "_fieldnames": pcls.fieldnames, "_msg_id": pcls.id,
+        "__slots__": tuple(names + raw), "__module__": __name__, "msgname": pcls.msgname,
+        "fieldnames": pcls.fieldnames, "crc_extra": pcls.crc_extra, "_type": pcls.msgname,
+        "_fieldnames": pcls.fieldnames, "_msg_id": pcls.id,
     }
     if "id" not in names:
         ns["id"] = pcls.id
@@ -246,6 +272,7 @@ def _decoder(pcls: Any, cls: type[FastMessage]) -> _Decoder:
     senders lack the extension fields) or cut to it (a newer dialect's extensions), as pymavlink does."""
     size = pcls.unpacker.size
     fields = _field_slices(pcls)
+    as_str = _char_modes(pcls, fields)
     lines = [
         "def decode(frame, off, plen, end):",
         "    if _mcrf(EXTRA, _mcrf(frame[1:end], 0xFFFF)) != frame[end] | frame[end + 1] << 8:",
@@ -267,6 +294,9 @@ def _decoder(pcls: Any, cls: type[FastMessage]) -> _Decoder:
         for name, tip, n, is_bytes in fields:
             if n:
                 lines.append(f"    m.{name} = list(t[{tip}:{tip + n}])")
+            elif is_bytes and as_str[name]:  # as pymavlink: str, the bytes as _<name>_raw
+                lines.append(f"    m._{name}_raw = r = t[{tip}].rstrip(b'\\x00')")
+                lines.append(f"    m.{name} = r.split(b'\\x00', 1)[0].decode('ascii', errors='replace')")
             elif is_bytes:
                 lines.append(f"    m.{name} = t[{tip}].rstrip(b'\\x00')")
             else:
@@ -289,11 +319,11 @@ for _id in sorted(DECODE_IDS):
     _DECODERS[_id] = _decoder(_pcls, MESSAGE_CLASSES[_id])
 
 
-def decode(frame: bytes) -> FastMessage | None:
+def decode(frame: bytes | bytearray) -> FastMessage | None:
     """The message of a delimited frame, as pymavlink's `mav.decode(bytearray(frame))` gives it, or None
     (use pymavlink): not one of DECODE_IDS, bad CRC, length not the header's, unknown incompat flags.
 
-    `frame` is bytes (a bytearray works too; get_msgbuf() returns what was given)."""
+    get_msgbuf() returns `frame` itself (not a copy)."""
     n = len(frame)
     if n < 8:
         return None
