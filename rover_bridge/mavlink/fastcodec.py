@@ -8,12 +8,14 @@ bytes are pymavlink's by construction (tests/test_fastcodec.py checks that diffe
 
 Decoding (`decode`): a delimited frame (MAVLink 1 or 2, signed or not) of one of DECODE_IDS becomes a
 light message object (`FastMessage`, a __slots__ class per message type) with every field under
-pymavlink's name, type and value (arrays as lists, char fields as bytes without trailing NULs), and
-pymavlink's getters (get_type, get_msgId, get_srcSystem, get_srcComponent, get_seq, get_msgbuf,
-get_header, get_payload, get_crc, get_signed, get_fieldnames, to_dict, format_attr, str()). The CRC
-is checked (with CRC_EXTRA) as pymavlink's decode does. `decode` returns None, and the caller uses
-pymavlink (which then raises or decodes exactly as before), for: another message id, a bad CRC, a
-length that does not match the header, an unknown incompatibility flag.
+pymavlink's name, type and value (arrays as lists; char fields as pymavlink's constructors leave
+them: str, with the bytes in `_<name>_raw`; none of DECODE_IDS has one) and pymavlink's getters
+(get_type, get_msgId, get_srcSystem, get_srcComponent, get_seq, get_msgbuf, get_header, get_payload,
+get_crc, get_signed, get_fieldnames, to_dict, format_attr, str()). It is no MAVLink_message:
+isinstance, `==` with pymavlink's and new attributes do not work. The CRC is checked (with
+CRC_EXTRA) as pymavlink's decode does. `decode` returns None, and the caller uses pymavlink (which
+then raises or decodes exactly as before), for: another message id, a bad CRC, a length that does
+not match the header, an unknown incompatibility flag.
 
 Use it only when `can_decode_fast(mav)`: with a signing key on the parsing link pymavlink verifies
 signatures and consults allow_unsigned_callback (the bridge's SignatureVerifier), so that link keeps
@@ -25,7 +27,7 @@ PACK_IDS, and `pack_heartbeat`, `pack_timesync`, `pack_rc_channels_override`, `p
 field values without building a pymavlink object. The bytes are those of pymavlink's `msg.pack(mav)`
 for an unsigned MAVLink 2 frame with mav.seq / srcSystem / srcComponent = seq / src_system /
 src_component (payload zero-trimmed, CRC with CRC_EXTRA, fastcrc when pymavlink uses it), and values
-pymavlink cannot pack raise the same struct errors. Unlike `msg.pack`, nothing is stored on `msg`
+pymavlink cannot pack raise the same exception types. Unlike `msg.pack`, nothing is stored on `msg`
 (its _header, _msgbuf, ... stay as they were) and the caller advances its own sequence number.
 Signing: when `can_pack_fast(mav)` is False (mav.signing.sign_outgoing), pack with pymavlink.
 """
