@@ -152,7 +152,10 @@ def sender(seq: int, sysid: int, compid: int, module: Any = mavlink) -> Any:
 def test_decode_ids_are_the_hot_messages() -> None:
     assert {mavlink.mavlink_map[i].msgname for i in DECODE_IDS} == {
         "HEARTBEAT", "SYSTEM_TIME", "SCALED_IMU", "RAW_IMU", "ATTITUDE", "LOCAL_POSITION_NED",
-        "GLOBAL_POSITION_INT", "COMMAND_ACK", "TIMESYNC", "WHEEL_DISTANCE", "COMMAND_LONG", "MISSION_ACK"}
+        "GLOBAL_POSITION_INT", "COMMAND_ACK", "TIMESYNC", "WHEEL_DISTANCE", "COMMAND_LONG", "MISSION_ACK",
+        "SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT", "MANUAL_CONTROL", "COMMAND_INT",
+        "MISSION_ITEM_INT", "NAV_CONTROLLER_OUTPUT", "POSITION_TARGET_LOCAL_NED", "POSITION_TARGET_GLOBAL_INT",
+        "MISSION_ITEM_REACHED"}
 
 
 @SETTINGS

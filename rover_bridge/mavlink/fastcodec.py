@@ -59,6 +59,17 @@ DECODE_IDS: Final = frozenset({
     mavlink.MAVLINK_MSG_ID_COMMAND_ACK,
     mavlink.MAVLINK_MSG_ID_TIMESYNC,
     mavlink.MAVLINK_MSG_ID_WHEEL_DISTANCE,
+    # The ground station's side: velocity requests at 10-50 Hz, and what the command flow reads.
+    mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED,
+    mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT,
+    mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL,
+    mavlink.MAVLINK_MSG_ID_COMMAND_INT,
+    mavlink.MAVLINK_MSG_ID_MISSION_ITEM_INT,
+    # The autopilot's own navigation feedback (read, and held back while the bridge navigates).
+    mavlink.MAVLINK_MSG_ID_NAV_CONTROLLER_OUTPUT,
+    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED,
+    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT,
+    mavlink.MAVLINK_MSG_ID_MISSION_ITEM_REACHED,
 })
 PACK_IDS: Final = frozenset({
     mavlink.MAVLINK_MSG_ID_HEARTBEAT,
