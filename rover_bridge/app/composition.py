@@ -101,7 +101,7 @@ class BridgeCore:
 
     def next_deadline_s(self, now_s: float) -> float:
         hb = now_s if self._next_heartbeat_s is None else self._next_heartbeat_s
-        return min([hb] + [sub.next_deadline_s(now_s) for sub in self._subcores])
+        return min(hb, self.command.next_deadline_s(now_s), self.estimate.next_deadline_s(now_s))
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Every subcore's safe-stop messages (neutral, release, the probe that confirms them), in order.

@@ -12,9 +12,17 @@ Decisions (the README repeats them for users):
   stick). A dead bridge is covered by the autopilot's override timeout (RC_OVERRIDE_TIME), and
   every exit path the shell can reach calls `shutdown`: neutral, then release.
 - Before the vehicle's id is known nothing is sent at all (an override cannot be addressed).
-- A valid request is followed at once: the output goes out in the same `handle` call, through
-  the limiter with dt = time since the last output, capped at one period (after a stalled loop the
-  limiter must not allow a jump worth the whole stall).
+- A valid request is followed at once: the output goes out in the same `handle` call, and it shows
+  the request. The limiter keeps its own time: the answer to a request steps it to the later of now
+  and one period past where it stood (so a request that arrives 1 ms after an output still moves the
+  wheels by what the limits allow over a period, not by 1 ms worth: 0.05 m/s at the default 1 m/s^2
+  and 20 Hz, where 1 ms worth rounds to the same PWM and the request would show only a period later);
+  every other output steps it to now, or not at all while it is ahead. So the command follows the
+  limiter's trajectory exactly, evaluated at most one period ahead of time after a request: the
+  acceleration limits hold on that trajectory, and a burst of requests cannot run it further ahead.
+  A step is never longer than one period (after a stalled loop the limiter must not allow a jump worth
+  the whole stall). The shell reads every link before a due periodic output is sent (Runner.step),
+  so input that arrived by then is answered first.
 - No valid request for command.setpoint_timeout_s: BRAKING, the limiter ramps to zero at its
   deceleration limits; once at zero the request is dropped and the state is IDLE (neutral).
 - Autopilot heartbeat silent for safety.heartbeat_timeout_s: LINK_LOST, immediately neutral
@@ -194,6 +202,8 @@ class CommandCore:
         self.outputs = OutputMap.from_profile(profile)
         self.limiter = TwistLimiter(TwistLimits.from_params(profile.limits))
         self.period_s = 1.0 / profile.command.rate_hz
+        self._setpoint_timeout_s = profile.command.setpoint_timeout_s
+        self._heartbeat_timeout_s = profile.safety.heartbeat_timeout_s
         self.state = CommandState.WAITING
         self.counters: dict[str, int] = {}
         self.last_wheel_pwm: WheelPwm | None = None
@@ -204,6 +214,7 @@ class CommandCore:
         self._yaw_cw_rad: float | None = None
         self._yaw_s: float | None = None
         self._last_output_s: float | None = None
+        self._limiter_s: float | None = None  # the time the limiter's state stands for (module doc)
         self._next_output_s: float | None = None
         self._refused = False
         self._said: set[tuple[str, int, int]] = set()
@@ -305,20 +316,21 @@ class CommandCore:
                        self._stop_began_s + self.profile.safety.stop_confirm_timeout_s)
         if self.state is CommandState.STOPPED or self.identity.vehicle_system_id is None:
             return now_s + self.period_s  # nothing can be sent yet; look again a period later
-        deadlines = [now_s if self._next_output_s is None else self._next_output_s]
+        # Runs on every turn of the loop: plain comparisons, no lists.
+        first = now_s if self._next_output_s is None else self._next_output_s
         goal = self.request
         if isinstance(goal, GotoRequest):
             # A target needs no stream (no setpoint timeout); its own deadlines: feedback, GCS silence.
             for deadline in (self.nav.next_report_s, self.nav.gcs_deadline_s()):
-                if deadline is not None:
-                    deadlines.append(deadline)
+                if deadline is not None and deadline < first:
+                    first = deadline
         elif self.state is CommandState.ACTIVE and self._request_s is not None:
-            deadlines.append(self._request_s + self.profile.command.setpoint_timeout_s)
+            first = min(first, self._request_s + self._setpoint_timeout_s)
         if self._mode_change is not None:
-            deadlines.append(self._mode_change.deadline_s)
+            first = min(first, self._mode_change.deadline_s)
         if self._last_heartbeat_s is not None and self.state is not CommandState.LINK_LOST:
-            deadlines.append(self._last_heartbeat_s + self.profile.safety.heartbeat_timeout_s)
-        return min(deadlines)
+            first = min(first, self._last_heartbeat_s + self._heartbeat_timeout_s)
+        return first
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Neutral, then release (servo mode: trim on both outputs), then a TIMESYNC probe; STOPPING.
@@ -538,7 +550,7 @@ class CommandCore:
             self._count("goto.cancelled.velocity")
             out += self.nav.cancelled(f"velocity from {source[0]}:{source[1]}", now_s)
         self.request, self._request_s, self._refused = request, now_s, False
-        out += self._advance(now_s, force_output=True)
+        out += self._advance(now_s, force_output=True, answer=True)
         return Reaction(consumed=True, out=tuple(out))
 
     def _reject(self, reason: str, source: tuple[int, int], now_s: float) -> Reaction:
@@ -549,13 +561,14 @@ class CommandCore:
 
     # ----------------------------------------------------------------- state and outputs
 
-    def _advance(self, now_s: float, force_output: bool) -> list[Outgoing]:
-        """Update the state for `now_s`; send outputs if forced, due to a state change, or braking done."""
+    def _advance(self, now_s: float, force_output: bool, answer: bool = False) -> list[Outgoing]:
+        """Update the state for `now_s`; send outputs if forced, due to a state change, or braking done.
+        `answer`: the output answers a new request (the module doc: how far the limiter moves)."""
         before = self.state
         out = self._watch_goal(now_s)
         out += self._set_state(self._evaluate(now_s), now_s)
         if self.identity.vehicle_system_id is not None and (force_output or self.state is not before):
-            out += self._output(now_s)
+            out += self._output(now_s, answer)
         return out
 
     def _evaluate(self, now_s: float) -> CommandState:
@@ -607,7 +620,7 @@ class CommandCore:
             return None
         return self._yaw_cw_rad
 
-    def _output(self, now_s: float) -> list[Outgoing]:
+    def _output(self, now_s: float, answer: bool = False) -> list[Outgoing]:
         vehicle = self.identity.vehicle_system_id
         if vehicle is None:
             return []
@@ -619,12 +632,22 @@ class CommandCore:
         else:
             target = self._target(now_s) if self.state is CommandState.ACTIVE else None
         last = self._last_output_s
-        dt_s = self.period_s if last is None else min(self.period_s, now_s - last)
+        period = self.period_s
+        dt_s = period if last is None else min(period, now_s - last)  # since the last output (the speed loop)
+        # The limiter's own time (module doc): an answer steps it to the later of now and one period past
+        # where it stood; any other output to now (nothing, while it is ahead).
+        at = self._limiter_s
+        if at is None:
+            at = now_s - period
+        until = max(now_s, min(at, now_s) + period) if answer else now_s
         if self.state in _RAMPING:
-            if dt_s > 0.0:
-                self.limiter.step(target if target is not None else Twist2D(), dt_s)
+            step_s = min(period, until - at)
+            if step_s > 0.0:
+                self.limiter.step(target if target is not None else Twist2D(), step_s)
+                self._limiter_s = until
         else:
             self.limiter.reset(Twist2D())
+            self._limiter_s = now_s
         raw = self.drive.to_wheel_speeds(self.limiter.current)
         wheels = raw.desaturate(self.profile.robot.max_wheel_rad_s)
         moving = self.state in _DRIVING or (self.state is CommandState.HOLD and self.limiter.current != Twist2D())
@@ -790,7 +813,7 @@ class CommandCore:
         self._count("goto.accepted")
         out = self.nav.begin(goal, notes, now_s)
         self.request, self._request_s, self._refused = goal, now_s, False
-        return out + self._advance(now_s, force_output=True)
+        return out + self._advance(now_s, force_output=True, answer=True)
 
     def _ask_for_guided(self, msg: MAVLinkMessage, goal: GotoRequest, notes: frozenset[str],
                         now_s: float) -> list[Outgoing]:

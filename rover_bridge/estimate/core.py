@@ -314,14 +314,17 @@ class EstimateCore:
         return out
 
     def next_deadline_s(self, now_s: float) -> float:
-        deadlines = [now_s + 1.0, *self.streams.deadlines(now_s)]
+        # Runs on every turn of the loop: plain comparisons, no lists.
+        first = min(now_s + 1.0, self.streams.next_deadline_s(now_s))
         odom = self.publisher.deadline_s(now_s) if self._have_wheels else None
         if odom is not None:
             # Held back until the frame is decided: look again when the wait for the autopilot ends.
-            deadlines.append(odom if self.frame.ready else max(odom, now_s + min(0.1, self.frame.timeout_s)))
-        if self.calibration_reports.next_s is not None:
-            deadlines.append(self.calibration_reports.next_s)
-        return min(deadlines)
+            if not self.frame.ready:
+                odom = max(odom, now_s + min(0.1, self.frame.timeout_s))
+            if odom < first:
+                first = odom
+        cal = self.calibration_reports.next_s
+        return first if cal is None or cal >= first else cal
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Nothing to stop: the estimate flow sends no commands that persist."""

@@ -32,7 +32,7 @@ from rover_bridge import frames
 from rover_bridge.estimate.ekf import IV, IW, IX, IY, IYAW, Mat, Vec
 from rover_bridge.frames import LocalAnchor
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
-from rover_bridge.mavlink.wire import Link, f32, uint
+from rover_bridge.mavlink.wire import FLOAT32_MAX, Link, f32, uint
 from rover_bridge.params import OdometryParams
 
 LATERAL_SIGMA_M_S = 0.02  # vy: skid-steer side slip, plus ...
@@ -108,32 +108,37 @@ class OdometryPublisher:
     def message(self, x: Vec, P: Mat, time_usec: int, reset_counter: int, quality_0_100: int,
                 anchor: LocalAnchor | None = None) -> MAVLinkMessage:
         """ODOMETRY for state x with covariance P (rover-bridge's FLU convention) at time_usec, in the start
-        frame or, with `anchor`, in the autopilot's local frame."""
+        frame or, with `anchor`, in the autopilot's local frame.
+
+        It runs at odometry.rate_hz, so the covariances are written out in closed form (the few entries
+        the state has, FRD signs applied, rotated into the anchor's frame), not built as 6x6 matrices;
+        `reference_covariances` is the general construction it is tested against."""
         big = self.unobserved_variance
-        v, w = float(x[IV]), float(x[IW])
-        pose_flu = [[0.0] * 6 for _ in range(6)]
-        vel_flu = [[0.0] * 6 for _ in range(6)]
-        for a, ia in ((0, IX), (1, IY), (5, IYAW)):
-            for b, ib in ((0, IX), (1, IY), (5, IYAW)):
-                pose_flu[a][b] = float(P[ia, ib])
-        for a, ia in ((0, IV), (5, IW)):
-            for b, ib in ((0, IV), (5, IW)):
-                vel_flu[a][b] = float(P[ia, ib])
-        for k in (2, 3, 4):
-            pose_flu[k][k] = vel_flu[k][k] = big
-        lateral = LATERAL_SIGMA_M_S + LATERAL_SIGMA_PER_M_S * abs(v) + LATERAL_SIGMA_PER_RAD_S * abs(w)
-        vel_flu[1][1] = lateral * lateral  # (not ** 2: that raises OverflowError where * gives inf)
-        pose_frd = frames.covariance_frd_from_flu(pose_flu)
+        xs = x.tolist()
+        p = P.tolist()
+        v, w = xs[IV], xs[IW]
+        # FRD signs (x, -y, -yaw): x-y and x-yaw change sign, y-yaw does not.
+        cxx, cxy, cyy = p[IX][IX], -p[IX][IY], p[IY][IY]
+        cxw, cyw, cww = -p[IX][IYAW], p[IY][IYAW], p[IYAW][IYAW]
         if anchor is None:
-            px, py = float(x[IX]), frames.y_frd_from_y_flu(float(x[IY]))
-            yaw_frd = frames.yaw_frd_from_yaw_flu(float(x[IYAW]))
+            px, py, yaw_frd = xs[IX], -xs[IY], -xs[IYAW]
+            # Zero entries keep the signs S C S gives them (-0.0 where one axis of the pair flips).
+            pose_cov = [cxx, cxy, -0.0, 0.0, -0.0, cxw, cyy, 0.0, -0.0, 0.0, cyw, big, -0.0, 0.0, 0.0, big, -0.0,
+                        -0.0, big, 0.0, cww]
         else:
-            ned = anchor.to_ned(float(x[IX]), float(x[IY]), float(x[IYAW]))
+            ned = anchor.to_ned(xs[IX], xs[IY], xs[IYAW])
             px, py, yaw_frd = ned.north_m, ned.east_m, ned.yaw_cw_rad
-            pose_frd = _rotate_xy(pose_frd, anchor.rotation_cw_rad)
-        pose_cov = upper_triangle_21(pose_frd)
-        vel_cov = upper_triangle_21(frames.covariance_frd_from_flu(vel_flu))
+            c, s_ = math.cos(anchor.rotation_cw_rad), math.sin(anchor.rotation_cw_rad)
+            t00, t01 = c * cxx - s_ * cxy, c * cxy - s_ * cyy  # R C, then (R C) R'
+            t10, t11 = s_ * cxx + c * cxy, s_ * cxy + c * cyy
+            pose_cov = [t00 * c - t01 * s_, t00 * s_ + t01 * c, 0.0, 0.0, 0.0, c * cxw - s_ * cyw,
+                        t10 * s_ + t11 * c, 0.0, 0.0, 0.0, s_ * cxw + c * cyw, big, 0.0, 0.0, 0.0, big, 0.0, 0.0,
+                        big, 0.0, cww]
+        lateral = LATERAL_SIGMA_M_S + LATERAL_SIGMA_PER_M_S * abs(v) + LATERAL_SIGMA_PER_RAD_S * abs(w)
+        vel_cov = [p[IV][IV], -0.0, -0.0, 0.0, -0.0, -p[IV][IW], lateral * lateral, 0.0, -0.0, 0.0, 0.0, big, -0.0,
+                   0.0, 0.0, big, -0.0, -0.0, big, 0.0, p[IW][IW]]
         self.sent += 1
+        half = 0.5 * yaw_frd if math.isfinite(yaw_frd) else math.nan
         # Clamped to the wire types: the estimate is fed by the autopilot, and a packing error must
         # never escape the loop (pymavlink raises on a float beyond float32 or an integer out of range).
         return mavlink.MAVLink_odometry_message(
@@ -143,16 +148,40 @@ class OdometryPublisher:
             x=f32(px),
             y=f32(py),
             z=0.0,
-            q=[f32(c) for c in frames.quaternion_from_yaw(yaw_frd if math.isfinite(yaw_frd) else math.nan)],
+            q=[math.cos(half), 0.0, 0.0, math.sin(half)],
             vx=f32(v),
             vy=0.0,
             vz=0.0,
             rollspeed=0.0,
             pitchspeed=0.0,
-            yawspeed=f32(frames.mavlink_yaw_rate_from_omega(w)),
-            pose_covariance=[f32(c) for c in pose_cov],
-            velocity_covariance=[f32(c) for c in vel_cov],
+            yawspeed=f32(-w),  # MAVLink's yaw rate is clockwise positive
+            pose_covariance=[c if -FLOAT32_MAX <= c <= FLOAT32_MAX else f32(c) for c in pose_cov],
+            velocity_covariance=[c if -FLOAT32_MAX <= c <= FLOAT32_MAX else f32(c) for c in vel_cov],
             reset_counter=uint(reset_counter, 8),
             estimator_type=mavlink.MAV_ESTIMATOR_TYPE_UNKNOWN,
             quality=min(100, uint(quality_0_100, 8)),  # int8_t on the wire: -1 (failure) to 100
         )
+
+
+def reference_covariances(x: Vec, P: Mat, big: float, anchor: LocalAnchor | None = None
+                          ) -> tuple[list[float], list[float]]:
+    """ODOMETRY's (pose, velocity) covariances built the general way: 6x6 FLU matrices, S C S into FRD,
+    rotated into the anchor's frame, upper triangles. The reference OdometryPublisher.message is
+    tested against (tests/test_estimate_parts.py)."""
+    v, w = float(x[IV]), float(x[IW])
+    pose_flu = [[0.0] * 6 for _ in range(6)]
+    vel_flu = [[0.0] * 6 for _ in range(6)]
+    for a, ia in ((0, IX), (1, IY), (5, IYAW)):
+        for b, ib in ((0, IX), (1, IY), (5, IYAW)):
+            pose_flu[a][b] = float(P[ia, ib])
+    for a, ia in ((0, IV), (5, IW)):
+        for b, ib in ((0, IV), (5, IW)):
+            vel_flu[a][b] = float(P[ia, ib])
+    for k in (2, 3, 4):
+        pose_flu[k][k] = vel_flu[k][k] = big
+    lateral = LATERAL_SIGMA_M_S + LATERAL_SIGMA_PER_M_S * abs(v) + LATERAL_SIGMA_PER_RAD_S * abs(w)
+    vel_flu[1][1] = lateral * lateral
+    pose_frd = frames.covariance_frd_from_flu(pose_flu)
+    if anchor is not None:
+        pose_frd = _rotate_xy(pose_frd, anchor.rotation_cw_rad)
+    return upper_triangle_21(pose_frd), upper_triangle_21(frames.covariance_frd_from_flu(vel_flu))

@@ -165,17 +165,29 @@ class StreamRequests:
 
     def deadlines(self, now_s: float) -> list[float]:
         """When pump or check_rates next has something to do (mirrors them exactly)."""
-        out: list[float] = []
+        first = self.next_deadline_s(now_s)
+        return [] if first == math.inf else [first]
+
+    def next_deadline_s(self, now_s: float) -> float:
+        """The earliest of deadlines() (inf: none), in one pass: it runs on every turn of the loop."""
         # One request outstanding at a time, so a queued stream waits for the pending ACK's timeout,
         # not "now" (which would spin the loop until the ACK came).
-        pending = next((s for s in self.streams if s.state == "awaiting_ack"), None)
-        if pending is not None:
-            out.append(pending.sent_s + STREAM_ACK_TIMEOUT_S)
-        elif any(s.state == "queued" for s in self.streams):
-            out.append(now_s)
-        out += [s.window_start_s + RATE_WINDOW_S for s in self.streams
-                if s.window_start_s is not None and (s.check_rate or s.state == "watching")]
-        return out
+        pending = math.inf
+        queued = False
+        first = math.inf
+        for s in self.streams:
+            state = s.state
+            if state == "awaiting_ack":
+                if pending == math.inf:
+                    pending = s.sent_s + STREAM_ACK_TIMEOUT_S
+            elif state == "queued":
+                queued = True
+            start = s.window_start_s
+            if start is not None and (s.check_rate or state == "watching") and start + RATE_WINDOW_S < first:
+                first = start + RATE_WINDOW_S
+        if pending != math.inf:
+            return min(pending, first)
+        return min(now_s, first) if queued else first
 
     # ------------------------------------------------------------------ messages
     def _target(self) -> tuple[int, int]:
