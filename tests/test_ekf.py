@@ -229,3 +229,24 @@ def test_consider_update_equals_the_joseph_form_with_zero_gain_rows(seed: int) -
     np.testing.assert_allclose(ekf.x, x + K @ y, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(ekf.P, I_KH @ P @ I_KH.T + K @ R @ K.T, rtol=1e-7, atol=1e-12)
     assert ekf.x[IKT] == x[IKT] and ekf.x[IKR] == x[IKR]  # considered: never moved
+
+
+def test_a_filter_built_while_filterpy_loads_in_the_background_moves_into_it_unchanged(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # rover-bridge run imports filterpy (and scipy, 0.45 s) in a thread of its own: a filter built before
+    # that finished holds x and P itself and moves them into filterpy's filter at its next prediction.
+    import rover_bridge.estimate.ekf as ekf_module
+
+    cls = ekf_module.filter_class()
+    monkeypatch.setattr(ekf_module, "_FILTER_CLASS", None)
+    monkeypatch.setattr(ekf_module, "_BACKGROUND", True)
+    early, normal = WheelGyroEKF(0.3), None
+    assert not isinstance(early.ekf, cls)
+    early.update_gyro(0.01, 0.1)
+    monkeypatch.setattr(ekf_module, "_FILTER_CLASS", cls)  # the thread finished
+    normal = WheelGyroEKF(0.3)
+    normal.update_gyro(0.01, 0.1)
+    for f in (early, normal):
+        f.update_wheels(0.02, 0.004, 0.0045, 0.01, 0.1)
+    assert isinstance(early.ekf, cls) and isinstance(normal.ekf, cls)
+    assert np.array_equal(early.x, normal.x) and np.array_equal(early.P, normal.P)

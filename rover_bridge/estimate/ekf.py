@@ -28,6 +28,13 @@ a standstill bound that tightens with its duration; publishing extrapolates at m
 EXTRAPOLATE_MAX_S past the last measurement, and restart_motion continues from that held pose.
 
 Every model is a pure function of (x, dt) so tests can check the Jacobians by finite differences.
+
+filterpy's ExtendedKalmanFilter holds the state (x, P); importing it imports scipy (filterpy's
+package and its stats module do), 0.45 s of a 0.7 s start. So it is imported on first use, or,
+when the process asked for it (`load_in_background`, rover-bridge run: its own thread, started
+before anything else), while the bridge already runs; a filter built before the import finished keeps
+its two arrays in a plain holder and moves them into filterpy's at its next prediction. Nothing is
+computed differently either way: only x and P of that object are used.
 """
 
 # Kalman-filter notation (F, H, P, Q, R, S, L) reads better than pep8 names here.
@@ -36,10 +43,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from filterpy.kalman import ExtendedKalmanFilter
 
 from rover_bridge.odometry import Pose2D, arc_factors, wrap_angle
 
@@ -240,6 +247,35 @@ def wheel_noise(d_left_m: float, d_right_m: float, dt_s: float, track_width_m: f
 
 # ---------------------------------------------------------------- the filter
 
+_FILTER_CLASS: type | None = None  # filterpy's ExtendedKalmanFilter, once imported
+_BACKGROUND = False  # the process imports it in its own thread: do not block on it here
+
+
+def filter_class() -> type:
+    """filterpy's ExtendedKalmanFilter (imported here on first use)."""
+    global _FILTER_CLASS
+    if _FILTER_CLASS is None:
+        from filterpy.kalman import ExtendedKalmanFilter
+
+        _FILTER_CLASS = ExtendedKalmanFilter
+    return _FILTER_CLASS
+
+
+def load_in_background() -> None:
+    """Say that the caller imports filterpy in a thread of its own (then calls filter_class() there):
+    filters built meanwhile do not wait for it (module docstring)."""
+    global _BACKGROUND
+    _BACKGROUND = True
+
+
+class _Holder:
+    """x and P until filterpy's filter is imported (module docstring)."""
+
+    def __init__(self) -> None:
+        self.x: Vec = np.zeros(0)
+        self.P: Mat = np.zeros((0, 0))
+
+
 @dataclass(frozen=True, slots=True)
 class WheelUpdate:
     """What happened to one wheel measurement."""
@@ -269,7 +305,8 @@ class WheelGyroEKF:
         n = N_CAL  # geometry states always: estimated with calibrate, considered without
         self.n = n
         self._consider: list[int] = [] if calibrate else [IKT, IKR]
-        self.ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1)
+        self.ekf: Any = filter_class()(dim_x=n, dim_z=1) if _FILTER_CLASS or not _BACKGROUND else _Holder()
+        self._held = isinstance(self.ekf, _Holder)
         self.time_s: float | None = None
         self._still_since_s: float | None = None  # start of the current standstill (wheels not moving)
         # Trapezoid bookkeeping between gyro samples (see update_gyro).
@@ -296,6 +333,13 @@ class WheelGyroEKF:
         self.ekf.x = x
         self.ekf.P = np.diag(np.square(sig))
 
+    def _adopt(self, cls: type) -> None:
+        """Move x and P into filterpy's filter, now imported."""
+        held = self.ekf
+        ekf = cls(dim_x=self.n, dim_z=1)
+        ekf.x, ekf.P = held.x, held.P
+        self.ekf, self._held = ekf, False
+
     # -- accessors
     @property
     def x(self) -> Vec:
@@ -317,6 +361,8 @@ class WheelGyroEKF:
         integrated step by step; a time that is not finite is ignored."""
         if not math.isfinite(t_s):
             return
+        if self._held and _FILTER_CLASS is not None:
+            self._adopt(_FILTER_CLASS)
         if self.time_s is None:
             self.time_s = t_s
             return

@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import signal
+import threading
 import time
 from dataclasses import replace
 from types import FrameType
@@ -24,6 +25,7 @@ from rover_bridge.app.loop import Runner, TlogWriter
 from rover_bridge.app.systemd import SystemdNotifier
 from rover_bridge.command.core import EMERGENCY_PROBE_TS1
 from rover_bridge.errors import ConfigError
+from rover_bridge.estimate import ekf
 from rover_bridge.mavlink.links import Endpoint, check_url
 from rover_bridge.mavlink.signing import SignatureVerifier, load_key, signing_timestamp
 from rover_bridge.mavlink.wire import Link
@@ -57,7 +59,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop safely after this many seconds (tests, demos)")
 
 
+def _import_filterpy() -> None:
+    try:
+        ekf.filter_class()
+    except Exception:  # the filter keeps its plain holder: nothing is computed differently
+        log.exception("filterpy could not be imported; the EKF's state stays in its plain holder")
+
+
 def main(args: argparse.Namespace) -> int:
+    # filterpy, and through it scipy (0.45 s), is imported while the bridge already runs, in a thread of its
+    # own: never in the loop, never before the first HEARTBEAT (rover_bridge.estimate.ekf).
+    ekf.load_in_background()
+    threading.Thread(target=_import_filterpy, name="import-filterpy", daemon=True).start()
     profile = load_profile(args.params)
     if getattr(args, "key_file", None):
         profile = replace(profile, security=replace(profile.security, key_file=args.key_file))
