@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.params import load_profile
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_PROFILE = REPO / "params" / "default.toml"
@@ -565,6 +566,92 @@ def bench_latency(args: argparse.Namespace) -> None:
     for br, st in zip(under_test, stats, strict=True):
         print(f"{br.name} counters: accepted {st.get('command', {}).get('requests.accepted')}, "
               f"outputs {st.get('command', {}).get('outputs.sent')}")
+    value_latency(args)
+
+
+def collect_overrides(sock: socket.socket, parser: Any, out: list[tuple[float, int]]) -> None:
+    """Every RC_CHANNELS_OVERRIDE queued on `sock`: (kernel stamp, left PWM)."""
+    while (got := recv_stamped(sock)) is not None:
+        for m in parser.parse_buffer(got[0]) or []:
+            if m.get_msgId() == MSG_OVERRIDE:
+                out.append((got[1], int(m.chan1_raw)))
+
+
+def straight_pwm(v_m_s: float) -> float:
+    """The default profile's PWM for driving straight at v (its linear map, no speed curve)."""
+    prof = load_profile(DEFAULT_PROFILE)
+    trim, span = prof.output.pwm_trim, prof.output.pwm_max - prof.output.pwm_trim
+    return trim + span * v_m_s / prof.robot.left_radius_m / prof.robot.max_wheel_rad_s
+
+
+def value_latency(args: argparse.Namespace) -> None:
+    """A GCS alternating 0.2 and 0.3 m/s every 35-65 ms (random spacing, fixed seed); every override
+    captured with its kernel stamp. Per request: the first override after it (any value), and the first
+    one that moved toward it (left PWM above / below the last override before the request); never
+    reflected = no such override before the next request."""
+    rng = random.Random(7)
+    spacing = [rng.uniform(0.035, 0.065) for _ in range(args.value_requests)]
+    with tempfile.TemporaryDirectory() as tmp:
+        under_test = bridges(args, str(DEFAULT_PROFILE), tmp)
+        rows = []
+        for br in under_test:
+            ap, gcs = udp_socket(True), udp_socket()
+            parser = mavlink.MAVLink(None)
+            overrides: list[tuple[float, int]] = []  # (kernel stamp, left PWM)
+            requests: list[tuple[float, float]] = []  # (send time, v)
+            try:
+                br.wait_up(ap, gcs)
+                hb = Heartbeats(ap, br, gcs)
+                packer = Packer(GCS_SYS, GCS_COMP)
+
+                start = time.monotonic() + 1.0  # the first second warms up
+                t_next = start
+                for i, gap in enumerate(spacing):
+                    while (now := time.monotonic()) < t_next:
+                        hb.poll(now)
+                        collect_overrides(ap, parser, overrides)
+                        select.select([ap], [], [], min(0.005, t_next - now))
+                    v = 0.2 if i % 2 == 0 else 0.3
+                    t_sent = time.time()
+                    gcs.sendto(packer.pack(body_velocity_request(i, v, 0.0)), br.gcs_addr)
+                    requests.append((t_sent, v))
+                    t_next += gap
+                end = time.monotonic() + 0.2
+                while time.monotonic() < end:
+                    collect_overrides(ap, parser, overrides)
+                    time.sleep(0.005)
+            finally:
+                br.stop()
+                ap.close()
+                gcs.close()
+            first, moved = [], []
+            never = 0
+            for k, (t_req, v) in enumerate(requests[1:], start=1):
+                t_end = requests[k + 1][0] if k + 1 < len(requests) else math.inf
+                before = [pwm for t, pwm in overrides if t < t_req]
+                after = [(t, pwm) for t, pwm in overrides if t_req <= t < t_end]
+                if not before or not after:
+                    never += 1
+                    continue
+                first.append((after[0][0] - t_req) * 1e3)
+                # Toward the request from where the wheels were (not from the previous request: the rover
+                # may not have reached it); already there counts as shown at once.
+                goal = straight_pwm(v)
+                if abs(goal - before[-1]) < 1.0:
+                    moved.append(first[-1])
+                    continue
+                up = goal > before[-1]
+                hit = next((t for t, pwm in after if (pwm > before[-1]) == up and pwm != before[-1]), None)
+                if hit is None:
+                    never += 1
+                else:
+                    moved.append((hit - t_req) * 1e3)
+            rows.append([br.name, len(requests) - 1, pct(first, 50), pct(first, 99), pct(moved, 50), pct(moved, 99),
+                         never])
+    print_table(f"1b. value latency: {args.value_requests} requests alternating 0.2 / 0.3 m/s every 35-65 ms; "
+                "ms from the request to the first override, and to the first that moved toward it",
+                ["bridge", "n", "first_p50_ms", "first_p99_ms", "moved_p50_ms", "moved_p99_ms", "never_reflected"],
+                rows)
 
 
 # ------------------------------------------------------------------------------------- 2. throughput
@@ -1055,6 +1142,13 @@ def bench_startup(args: argparse.Namespace) -> None:
     print_table(f"   import time by top-level package (python -X importtime, self times summed; total "
                 f"{total_us / 1000.0:.0f} ms, one run)", ["package", "ms", "share"],
                 [[k, v / 1000.0, f"{v / total_us:.0%}"] for k, v in top])
+    # rover-bridge run imports filterpy (and scipy) in a thread of its own once it runs: off the path above.
+    later = subprocess.run([sys.executable, "-X", "importtime", "-c", "import filterpy.kalman"],
+                           capture_output=True, text=True, cwd=REPO)
+    later_us = sum(int(m.group(1)) for line in later.stderr.splitlines()
+                   if (m := re.match(r"import time:\s+(\d+) \|", line)))
+    print_table("   imported after start, in its own thread (rover_bridge.estimate.ekf.load_in_background)",
+                ["module", "ms"], [["filterpy.kalman (with scipy, numpy)", later_us / 1000.0]])
     notable = ["filterpy", "filterpy.stats", "scipy.stats", "scipy.linalg", "matplotlib", "numpy", "pymavlink.mavutil",
                "pymavlink.dialects.v20.ardupilotmega", "rover_bridge.estimate.ekf", "rover_bridge.app.commands.demo"]
     print_table("   cumulative import time of notable subtrees (ms; a subtree already imported elsewhere counts 0)",
@@ -1160,6 +1254,7 @@ def main(argv: list[str] | None = None) -> None:
     sub = parser.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("latency")
     p.add_argument("--requests", type=int, default=5000)
+    p.add_argument("--value-requests", type=int, default=600, help="requests of the value-latency run")
     p.add_argument("--interval-ms", type=float, default=2.0, help="time between requests (default %(default)s)")
     p = sub.add_parser("throughput")
     p.add_argument("--start-hz", type=float, default=4000.0)

@@ -729,3 +729,33 @@ def test_composed_core_consumes_the_request_and_shuts_down_neutral_then_release(
     rc = [o for o in out if o.msg.get_type() == "RC_CHANNELS_OVERRIDE"]
     assert overrides(rc) == [(1500, 1500), (0, 0)]
     assert out.index(rc[0]) < out.index(rc[1])
+
+
+# ------------------------------------------------------------------ a request shows in its answer
+
+def test_a_request_just_after_an_output_still_moves_the_wheels_by_a_period_of_the_limits() -> None:
+    # At the default 1 m/s^2 and 20 Hz, 1 ms of acceleration is 0.001 m/s: the same PWM. The answer steps
+    # the limiter one period instead (0.05 m/s), so the request shows in the override that answers it.
+    rig = ready(profile(fast=False))
+    for k in range(30):  # a GCS streaming 0.2 m/s at 10 Hz: cruising
+        rig.local(k * 0.1, vx=0.2, mask=VEL_ONLY)
+        rig.run_until(k * 0.1 + 0.1, k * 0.1, heartbeat_every_s=1.0)
+    assert rig.core.commanded.v_m_s == pytest.approx(0.2)
+    last_output = max(t for t, o in rig.sent if o.msg.get_type() == "RC_CHANNELS_OVERRIDE")
+    before = overrides(rig.sent)[-1]
+    answer = rig.local(last_output + 0.001, vx=0.3, mask=VEL_ONLY)
+    after = overrides(answer.out)
+    assert len(after) == 1 and after[0][0] > before[0] and after[0][1] > before[1]
+    assert rig.core.commanded.v_m_s == pytest.approx(0.2 + 1.0 * PERIOD_S)
+
+
+def test_a_burst_of_requests_runs_the_command_at_most_one_period_ahead_of_the_limits() -> None:
+    rig = ready(profile(fast=False))
+    t = 0.0
+    for _ in range(300):  # a request every millisecond for 0.3 s, from standstill
+        t = round(t + 0.001, 6)
+        rig.local(t, vx=0.8, mask=VEL_ONLY)
+        assert rig.core.commanded.v_m_s <= 1.0 * (t + PERIOD_S) + 1e-9  # accel 1 m/s^2, one period early at most
+        if rig.core.next_deadline_s(t) <= t:
+            rig.core.tick(t)
+    assert rig.core.commanded.v_m_s >= 1.0 * t - 1e-9  # and never behind the limit

@@ -167,6 +167,10 @@ class Runner:
         fds = [fd for fd in (ep.fileno() for ep in self.endpoints if not (resting and ep is self.autopilot))
                if fd is not None]
         readable, _, _ = select.select(fds + list(extra_fds), [], [], timeout)
+        if not readable:
+            # A deadline is due (a periodic output): read every link first, so that a request that arrived
+            # while the select returned is answered before the output goes, not after it.
+            return self.endpoints
         # The resting autopilot link is read on every wake-up (its batch); a link without a file
         # descriptor cannot be waited on, so it is read on every pass.
         return [ep for ep in self.endpoints
@@ -253,6 +257,9 @@ class Runner:
     def close(self) -> None:
         for ep in self.endpoints:
             ep.close()
+        if self.tlog is not None:  # a runner stopped without stop_safely (tests step it themselves)
+            self.tlog.close()
+            self.tlog = None
 
 
 def _signed_ok(ep: Endpoint, msg: MAVLinkMessage) -> bool:
