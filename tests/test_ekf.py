@@ -250,3 +250,56 @@ def test_a_filter_built_while_filterpy_loads_in_the_background_moves_into_it_unc
         f.update_wheels(0.02, 0.004, 0.0045, 0.01, 0.1)
     assert isinstance(early.ekf, cls) and isinstance(normal.ekf, cls)
     assert np.array_equal(early.x, normal.x) and np.array_equal(early.P, normal.P)
+
+
+def _random_filter(seed: int, calibrate: bool) -> WheelGyroEKF:
+    rng = np.random.default_rng(seed)
+    f = WheelGyroEKF(L, calibrate=calibrate)
+    f.predict_to(0.0)
+    x = rng.normal(size=N_CAL)
+    x[IKT], x[IKR] = 1.0 + 0.05 * rng.normal(), 1.0 + 0.05 * rng.normal()
+    a = rng.normal(size=(N_CAL, N_CAL))
+    f.ekf.x, f.ekf.P = x, a @ a.T * 0.01
+    return f
+
+
+@pytest.mark.parametrize("calibrate", [False, True])
+@pytest.mark.parametrize("seed", range(20))
+def test_the_fused_prediction_step_is_fx_f_jacobian_and_q_exactly(seed: int, calibrate: bool) -> None:
+    # predict_to writes fx, F_jacobian and process_noise_diagonal out in one pass; bit for bit the same.
+    from rover_bridge.estimate.ekf import process_noise_diagonal
+
+    f = _random_filter(seed, calibrate)
+    x0, p0 = f.x.copy(), f.P.copy()
+    f.predict_to(0.037)
+    F = F_jacobian(x0, 0.037)
+    p_ref = F @ p0 @ F.T
+    p_ref.flat[:: N_CAL + 1] += process_noise_diagonal(x0, 0.037)
+    assert np.array_equal(f.x, fx(x0, 0.037)) and np.array_equal(f.P, p_ref)
+
+
+@pytest.mark.parametrize("calibrate", [False, True])
+@pytest.mark.parametrize("seed", range(20))
+def test_the_gyro_update_in_vectors_is_the_matrix_update_exactly(seed: int, calibrate: bool) -> None:
+    a, b = _random_filter(seed, calibrate), _random_filter(seed, calibrate)
+    y, S, _ = a._gyro_innovation(0.3)
+    a._update_gyro(y, S)
+    b._update(np.array([y]), H_gyro(b.x), np.array([[S]]))
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.P, b.P)
+
+
+@pytest.mark.parametrize("calibrate", [False, True])
+@pytest.mark.parametrize("seed", range(20))
+def test_the_slip_distance_in_floats_is_the_one_from_hx_and_h(seed: int, calibrate: bool) -> None:
+    f = _random_filter(seed, calibrate)
+    z = np.array([0.4, 0.7])
+    R = np.array([[0.01, 0.001], [0.001, 0.02]])
+    gyro, spread = 0.35, 0.02
+    xg = f.x.copy()
+    xg[IW] = gyro - f.x[IB]
+    hg = H_wheels(xg, L)[1]
+    var = float(R[1, 1]) + float(hg[IW]) ** 2 * (f._gyro_var + float(f.P[IB, IB]) + spread**2)
+    g = hg[IKT:]
+    var += float(g @ f.P[IKT:, IKT:] @ g)
+    ref = (float(z[1]) - float(hx_wheels(xg, L)[1])) ** 2 / var
+    assert f.slip_d2(z, R, gyro, spread) == ref

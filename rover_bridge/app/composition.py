@@ -66,18 +66,18 @@ class BridgeCore:
         return self._autopilot_reads
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
-        if inc.link is Link.AUTOPILOT and inc.msg.get_msgId() not in self._autopilot_ids():
+        msg_id = inc.msg.get_msgId()
+        from_autopilot = inc.link is Link.AUTOPILOT
+        if from_autopilot and msg_id not in self._autopilot_ids():
             return NOTHING
-        refused = self.gate.check(inc, now_s)
-        if refused is not None:
-            return refused
-        consumed = False
-        out: list[Outgoing] = []
-        for sub in self._subcores:
-            reaction = sub.handle(inc, now_s)
-            consumed = consumed or reaction.consumed
-            out.extend(reaction.out)
-        if inc.link is Link.AUTOPILOT and inc.msg.get_msgId() == mavlink.MAVLINK_MSG_ID_WHEEL_DISTANCE:
+        if self.gate.policy.active:
+            refused = self.gate.check(inc, now_s)
+            if refused is not None:
+                return refused
+        # Both flows see every message (unrolled: this runs for every frame the bridge reads).
+        rc = self.command.handle(inc, now_s)
+        re_ = self.estimate.handle(inc, now_s)
+        if from_autopilot and msg_id == mavlink.MAVLINK_MSG_ID_WHEEL_DISTANCE:
             # The estimate flow measured the wheels; the command flow's speed loop and slip compensation use it.
             sample = self.estimate.take_wheel_sample()
             if sample is not None:
@@ -85,7 +85,9 @@ class BridgeCore:
                 for observe in self.wheel_observers:
                     observe(sample, now_s)
             self.command.set_slipping(self.estimate.slip.slipping)
-        return Reaction(consumed=consumed, out=tuple(out))
+        if not (rc.out or re_.out):
+            return re_ if re_.consumed else rc
+        return Reaction(consumed=rc.consumed or re_.consumed, out=rc.out + re_.out)
 
     def tick(self, now_s: float) -> list[Outgoing]:
         out: list[Outgoing] = []

@@ -85,12 +85,14 @@ class Runner:
         self._ap_read_s = -1e9
         self._stopped = False
         # Autopilot frames go to every GCS; a GCS's frames to the autopilot and the other GCSs.
+        self._endpoints = [self.autopilot, *self.gcs]
         self._forward_to = {ep: [o for o in (self.gcs if ep.role is Link.AUTOPILOT else self.endpoints) if o is not ep]
                             for ep in self.endpoints}
+        self._woken = False  # the last wait returned because of the wake-up fd (a signal): drain it
 
     @property
     def endpoints(self) -> list[Endpoint]:
-        return [self.autopilot, *self.gcs]
+        return self._endpoints
 
     def step(self, now_s: float, max_frames: int | None = None, ready: Sequence[Endpoint] | None = None) -> None:
         """Drain every link (at most `max_frames` from each; only the `ready` ones if given), handle
@@ -166,7 +168,8 @@ class Runner:
             return self.endpoints
         fds = [fd for fd in (ep.fileno() for ep in self.endpoints if not (resting and ep is self.autopilot))
                if fd is not None]
-        readable, _, _ = select.select(fds + list(extra_fds), [], [], timeout)
+        readable, _, _ = select.select(fds + list(extra_fds) if extra_fds else fds, [], [], timeout)
+        self._woken = bool(extra_fds) and any(fd in readable for fd in extra_fds)
         if not readable:
             # A deadline is due (a periodic output): read every link first, so that a request that arrived
             # while the select returned is answered before the output goes, not after it.
@@ -190,7 +193,7 @@ class Runner:
             if on_pass is not None:
                 on_pass(now)
             ready = None if self.backlog else self.wait(clock, extra)
-            if wake_fd is not None:
+            if wake_fd is not None and self._woken:
                 _drain(wake_fd)
 
     @property

@@ -46,6 +46,9 @@ def _release_value(channel: int) -> int:
     return RELEASE_CH1_8 if channel <= 8 else RELEASE_CH9_18
 
 
+_IGNORE_ALL = tuple(_ignore_value(ch) for ch in range(1, RC_CHANNELS + 1))
+
+
 @dataclass(frozen=True, slots=True)
 class SpeedCurve:
     """A wheel's measured PWM -> steady speed map: PWM increasing, speed non-decreasing, spanning 0."""
@@ -162,8 +165,11 @@ class OutputMap:
         if self.mode == "servo":
             return [servo_command(self.left_channel, pwm.left_us, target_system, target_component),
                     servo_command(self.right_channel, pwm.right_us, target_system, target_component)]
-        values = {self.left_channel: pwm.left_us, self.right_channel: pwm.right_us}
-        return [rc_override(values, target_system, target_component)]
+        # At command.rate_hz and on every request: the 18 channels from a template, not a dict per call.
+        chans = list(_IGNORE_ALL)
+        chans[self.left_channel - 1] = pwm.left_us
+        chans[self.right_channel - 1] = pwm.right_us
+        return [mavlink.MAVLink_rc_channels_override_message(target_system, target_component, *chans)]
 
     def release(self, target_system: int, target_component: int) -> list[MAVLinkMessage]:
         """Hand the two channels back to the RC radio (rc_override); servo mode has no release: trim."""

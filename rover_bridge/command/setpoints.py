@@ -151,6 +151,15 @@ REQUEST_TYPES = frozenset({"SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET
                            "MANUAL_CONTROL"})
 
 
+_LOCAL_FRAMES = BODY_FRAMES | LOCAL_EARTH_FRAMES
+_CHECKED_REST = (("vx", VX_IGNORE), ("vy", VY_IGNORE), ("vz", VZ_IGNORE), ("afx", AX_IGNORE), ("afy", AY_IGNORE),
+                 ("afz", AZ_IGNORE), ("yaw", YAW_IGNORE), ("yaw_rate", YAW_RATE_IGNORE))
+_CHECKED_GLOBAL = (("lat_int", X_IGNORE), ("lon_int", Y_IGNORE), ("alt", Z_IGNORE), *_CHECKED_REST)
+_CHECKED_LOCAL = (("x", X_IGNORE), ("y", Y_IGNORE), ("z", Z_IGNORE), *_CHECKED_REST)
+_BOUNDED = (("vx", VX_IGNORE, MAX_REQUEST_SPEED_M_S), ("vy", VY_IGNORE, MAX_REQUEST_SPEED_M_S),
+            ("yaw_rate", YAW_RATE_IGNORE, MAX_REQUEST_RATE_RAD_S), ("yaw", YAW_IGNORE, MAX_REQUEST_YAW_RAD))
+
+
 def _used(mask: int, bit: int) -> bool:
     return not mask & bit
 
@@ -164,20 +173,19 @@ def decode_position_target(msg: MAVLinkMessage) -> Decoded:
         if frame not in GLOBAL_FRAMES:
             return Rejected(UNSUPPORTED_FRAME)
         body = False
-        pos_fields = (("lat_int", X_IGNORE), ("lon_int", Y_IGNORE), ("alt", Z_IGNORE))
+        checked = _CHECKED_GLOBAL
     else:
-        if frame not in BODY_FRAMES | LOCAL_EARTH_FRAMES:
+        if frame not in _LOCAL_FRAMES:
             return Rejected(UNSUPPORTED_FRAME)
         body = frame in BODY_FRAMES
-        pos_fields = (("x", X_IGNORE), ("y", Y_IGNORE), ("z", Z_IGNORE))
-    checked = (*pos_fields, ("vx", VX_IGNORE), ("vy", VY_IGNORE), ("vz", VZ_IGNORE), ("afx", AX_IGNORE),
-               ("afy", AY_IGNORE), ("afz", AZ_IGNORE), ("yaw", YAW_IGNORE), ("yaw_rate", YAW_RATE_IGNORE))
-    if any(_used(mask, bit) and not math.isfinite(float(getattr(msg, name))) for name, bit in checked):
-        return Rejected(NON_FINITE)
-    bounded = (("vx", VX_IGNORE, MAX_REQUEST_SPEED_M_S), ("vy", VY_IGNORE, MAX_REQUEST_SPEED_M_S),
-               ("yaw_rate", YAW_RATE_IGNORE, MAX_REQUEST_RATE_RAD_S), ("yaw", YAW_IGNORE, MAX_REQUEST_YAW_RAD))
-    if any(_used(mask, bit) and abs(float(getattr(msg, name))) > bound for name, bit, bound in bounded):
-        return Rejected(OUT_OF_RANGE)
+        checked = _CHECKED_LOCAL
+    isfinite = math.isfinite
+    for name, bit in checked:  # a loop, not any(genexpr): this runs for every request
+        if not mask & bit and not isfinite(float(getattr(msg, name))):
+            return Rejected(NON_FINITE)
+    for name, bit, bound in _BOUNDED:
+        if not mask & bit and abs(float(getattr(msg, name))) > bound:
+            return Rejected(OUT_OF_RANGE)
 
     vx_used, vy_used = _used(mask, VX_IGNORE), _used(mask, VY_IGNORE)
     velocity_used = vx_used or vy_used

@@ -229,6 +229,10 @@ class WiringMonitor:
                 conditions.append((name, "still"))
             elif abs(m[k]) > RUNAWAY_FACTOR * abs(t[k]) + RUNAWAY_MARGIN * self.top_rad_s[k]:
                 conditions.append((name, "runaway"))
+        if not conditions:  # the common case: every wheel doing what it was told
+            if self._since:
+                self._since.clear()
+            return None
         active = {f"{w}:{kind}" for w, kind in conditions}
         for key in list(self._since):
             if key not in active:

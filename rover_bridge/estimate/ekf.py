@@ -315,7 +315,8 @@ class WheelGyroEKF:
         self._wheels_prev: tuple[float, float] | None = None  # (time, v after that update)
         self._moved_since_wheels_m = 0.0
         self._gyro_var = self.noise.gyro_noise_rad_s ** 2
-        self._F = np.eye(n)  # reused by every prediction step (F_jacobian writes the same entries)
+        self._F = np.eye(n)  # reused by every prediction step (it always writes the same entries)
+        self._q = np.zeros(n)  # the diagonal of Q, likewise
         self._estimated = np.ones(n)  # 1 for estimated states, 0 for considered ones: masks the gain
         self._estimated[self._consider] = 0.0
         self._gate2 = self.noise.gate_sigma ** 2
@@ -376,16 +377,43 @@ class WheelGyroEKF:
         # step would add the speed noise to the speed only, not to the position it moves).
         steps = max(1, math.ceil(total / MAX_PREDICT_STEP_S))
         dt = total / steps
+        q = self._q
+        q[IV], q[IW], q[IB] = Q_V * dt, Q_OMEGA * dt, Q_BIAS * dt
+        if self.n == N_CAL:
+            q[IKT] = q[IKR] = Q_CAL * dt
         ekf = self.ekf
         self.predict_steps += steps
+        F, q = self._F, self._q
         for _ in range(steps):
+            # fx, F_jacobian and process_noise_diagonal in one pass (they share every intermediate; this
+            # runs for every measurement), in the same arithmetic: tests hold it to the three functions.
             x = ekf.x
-            F = F_jacobian(x, dt, self._F)
+            yaw, v, w = float(x[IYAW]), float(x[IV]), float(x[IW])
+            ds, dyaw = v * dt, w * dt
+            a, b = arc_factors(dyaw)
+            da, db = _arc_derivatives(dyaw)
+            c, sn = math.cos(yaw), math.sin(yaw)
+            fwd, left = ds * a, ds * b
+            F[IX, IYAW] = -sn * fwd - c * left
+            F[IY, IYAW] = c * fwd - sn * left
+            F[IX, IV] = dt * (c * a - sn * b)
+            F[IY, IV] = dt * (sn * a + c * b)
+            dfwd, dleft = ds * da * dt, ds * db * dt
+            F[IX, IW] = c * dfwd - sn * dleft
+            F[IY, IW] = sn * dfwd + c * dleft
+            F[IYAW, IW] = dt
             P = F @ ekf.P @ F.T
-            P.flat[:: self.n + 1] += process_noise_diagonal(x, dt)  # Q is diagonal
-            ekf.x, ekf.P = fx(x, dt), P
-            self._turned_since_gyro_rad += float(x[IW]) * dt
-            self._moved_since_wheels_m += float(x[IV]) * dt
+            dist_m, turn_rad = abs(v) * dt, abs(w) * dt
+            q[IX] = q[IY] = Q_POS_PER_M * dist_m
+            q[IYAW] = Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad
+            P.flat[:: self.n + 1] += q  # Q is diagonal; the rest of q is constant per dt (set below)
+            out = x.copy()
+            out[IX] = x[IX] + c * fwd - sn * left
+            out[IY] = x[IY] + sn * fwd + c * left
+            out[IYAW] = wrap_angle(yaw + dyaw)
+            ekf.x, ekf.P = out, P
+            self._turned_since_gyro_rad += w * dt
+            self._moved_since_wheels_m += v * dt
         self.time_s = t_s
 
     def extrapolate(self, t_s: float) -> tuple[Vec, Mat]:
@@ -472,6 +500,20 @@ class WheelGyroEKF:
         ekf.P = P - A - A.T
         ekf.x[IYAW] = wrap_angle(float(ekf.x[IYAW]))
 
+    def _update_gyro(self, y: float, S: float) -> None:
+        """_update for the gyro's H (omega + bias: two ones), in vectors: P H' is the sum of two columns,
+        the gain a vector, A an outer product; the same arithmetic as the matrix form (tests hold it)."""
+        ekf = self.ekf
+        P = ekf.P
+        PHT = P[:, IW] + P[:, IB]
+        K = PHT * (1.0 / S)
+        if self._consider:
+            K *= self._estimated
+        ekf.x = ekf.x + K * y
+        A = np.outer(K, PHT - 0.5 * (K * S))
+        ekf.P = P - A - A.T
+        ekf.x[IYAW] = wrap_angle(float(ekf.x[IYAW]))
+
     def gyro_innovation_d2(self, omega_rad_s: float) -> float:
         return self._gyro_innovation(omega_rad_s)[2]
 
@@ -488,7 +530,7 @@ class WheelGyroEKF:
         y, S, d2 = self._gyro_innovation(omega_rad_s)
         if not self._gate("gyro", d2):
             return False
-        self._update(np.array([y]), _H_GYRO[self.n], np.array([[S]]))
+        self._update_gyro(y, S)
         # Trapezoid: the prediction turned at piecewise-constant rates, while the body's rate moved
         # from the last gyro sample's to this one's. Without this every change of yaw rate leaves a
         # heading error of (change x half a sample period), 1.3 deg per spin at 20 Hz.
@@ -510,16 +552,22 @@ class WheelGyroEKF:
         if gyro_omega_rad_s is None:
             return 0.0
         x, P = self.ekf.x, self.ekf.P
-        xg = x.copy()
-        xg[IW] = gyro_omega_rad_s - x[IB]
-        predicted = float(hx_wheels(xg, self.track_width_m)[1])
-        Hg = H_wheels(xg, self.track_width_m)[1]
+        # hx_wheels[1] and H_wheels[1] at x with omega = gyro - bias, in floats (it runs for every wheel
+        # reading; the same arithmetic, tests hold it to the two functions).
+        L = self.track_width_m
+        kt, q = _geometry(x)
+        sl, sr = 2.0 / (1.0 + q), 2.0 * q / (1.0 + q)
+        v, w = float(x[IV]), gyro_omega_rad_s - float(x[IB])
+        half = 0.5 * L * kt * w
+        predicted = ((v + half) / sr - (v - half) / sl) / L
+        h_w = (0.5 * L * kt / sr - -0.5 * L * kt / sl) / L
         # The spread of the gyro samples over the interval covers an omega that changed within it.
-        var = float(R[1, 1]) + float(Hg[IW]) ** 2 * (
-            self._gyro_var + float(P[IB, IB]) + gyro_spread_rad_s**2)
+        var = float(R[1, 1]) + h_w ** 2 * (self._gyro_var + float(P[IB, IB]) + gyro_spread_rad_s**2)
         if self.n == N_CAL:
-            g = Hg[IKT:]
-            var += float(g @ P[IKT:, IKT:] @ g)
+            g0 = (0.5 * L * w / sr - -0.5 * L * w / sl) / L
+            dsl, dsr = -2.0 / (1.0 + q) ** 2, 2.0 / (1.0 + q) ** 2
+            g1 = (-(v + 0.5 * L * kt * w) / (sr * sr) * dsr - -(v - 0.5 * L * kt * w) / (sl * sl) * dsl) / L
+            var += float(np.array([g0, g1]) @ P[IKT:, IKT:] @ np.array([g0, g1]))
         y = float(z[1]) - predicted
         return y * y / var
 
