@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import math
 import os
 import signal
 import socket
@@ -43,11 +44,18 @@ INSTANCE = 4  # SITL's ports are 5760 + 10 * instance (SERIAL0) and 5762 + 10 * 
 SERIAL0, SERIAL1 = 5760 + 10 * INSTANCE, 5762 + 10 * INSTANCE
 TRIM = 1500
 HOLD, MANUAL = 4, 0  # Rover custom modes
+GUIDED = 15
+# Per-wheel passthrough, SITL's wheel encoders with the profile's effective track (see its comments).
 EXTRA_PARAMS = """SERVO1_FUNCTION 51
 SERVO3_FUNCTION 53
 ARMING_CHECK 0
 SERIAL1_PROTOCOL 2
+WENC_TYPE 10
+WENC2_TYPE 10
+WENC_POS_Y 0.8185
+WENC2_POS_Y -0.8185
 """
+EARTH_RADIUS_M = 6378137.0
 BODY_VELOCITY_MASK = 0b0000_0101_1100_0111
 
 
@@ -76,6 +84,7 @@ class Monitor:
                                                     source_component=191, dialect="ardupilotmega")
         self.servo: collections.deque[tuple[float, int, int]] = collections.deque(maxlen=20000)
         self.mode: int | None = None
+        self.truth_deg: tuple[float, float] | None = None  # SIMSTATE lat, lon: where the rover really is
         self.alive = True
         self._threads = [threading.Thread(target=self._rx, daemon=True),
                          threading.Thread(target=self._tx, daemon=True)]
@@ -89,6 +98,8 @@ class Monitor:
             if n % 5 == 0:
                 self.conn.mav.command_long_send(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
                                                 mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, 25_000, 0, 0, 0, 0, 0)
+                self.conn.mav.command_long_send(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                mavlink.MAVLINK_MSG_ID_SIMSTATE, 50_000, 0, 0, 0, 0, 0)
             n += 1
             time.sleep(1.0)
 
@@ -102,8 +113,13 @@ class Monitor:
                 continue
             if m.get_type() == "SERVO_OUTPUT_RAW":
                 self.servo.append((time.monotonic(), m.servo1_raw, m.servo3_raw))
+            elif m.get_type() == "SIMSTATE":
+                self.truth_deg = (m.lat * 1e-7, m.lng * 1e-7)
             elif m.get_type() == "HEARTBEAT" and m.get_srcSystem() == 1 and m.get_srcComponent() == 1:
                 self.mode = m.custom_mode
+
+    def arm(self) -> None:
+        self.conn.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 21196, 0, 0, 0, 0, 0)
 
     def first(self, pred: Callable[[int, int], bool], since_s: float, timeout_s: float) -> float | None:
         """Time of the first output sample after `since_s` for which pred(servo1, servo3) holds."""
@@ -160,8 +176,25 @@ class Gcs:
                                                     source_component=190, dialect="ardupilotmega")
         self.vx_mps: float | None = None
         self.alive = True
-        self._th = threading.Thread(target=self._tx, daemon=True)
-        self._th.start()
+        self.position: Any = None  # the last GLOBAL_POSITION_INT the ground station saw
+        self.reached = 0  # MISSION_ITEM_REACHED seen
+        self._threads = [threading.Thread(target=self._tx, daemon=True), threading.Thread(target=self._rx, daemon=True)]
+        for th in self._threads:
+            th.start()
+
+    def _rx(self) -> None:
+        while self.alive:
+            try:
+                m = self.conn.recv_match(blocking=True, timeout=0.2)
+            except OSError:
+                time.sleep(0.05)  # udpout before the bridge's first datagram back
+                continue
+            if m is None:
+                continue
+            if m.get_type() == "GLOBAL_POSITION_INT" and m.lat != 0:
+                self.position = m
+            elif m.get_type() == "MISSION_ITEM_REACHED":
+                self.reached += 1
 
     def _tx(self) -> None:
         n = 0
@@ -181,7 +214,8 @@ class Gcs:
 
     def close(self) -> None:
         self.alive = False
-        self._th.join(1.0)
+        for th in self._threads:
+            th.join(1.0)
         self.conn.close()
 
 
@@ -277,3 +311,47 @@ def test_hold_on_the_autopilot_stops_the_rover(ardupilot: Monitor, tmp_path: Pat
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(5.0) == 0
     assert ardupilot.first(_at_trim, time.monotonic() - 0.5, 3.0) is not None
+
+
+def _north_east_m(origin_deg: tuple[float, float], point_deg: tuple[float, float]) -> tuple[float, float]:
+    lat0, lon0 = origin_deg
+    return (math.radians(point_deg[0] - lat0) * EARTH_RADIUS_M,
+            math.radians(point_deg[1] - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
+
+
+def test_go_to_a_point_on_the_real_autopilot(ardupilot: Monitor, tmp_path: Path) -> None:
+    """GUIDED through the bridge, then a MISSION_ITEM_INT (current = 2) 4 m north of the autopilot's
+    position: the bridge drives there on its own estimate and says MISSION_ITEM_REACHED; judged by the
+    simulator's truth (SIMSTATE), not by what either side estimates."""
+    with bridge(PROFILE, tmp_path) as (proc, gcs, log_path):
+        ardupilot.arm()
+        # ArduPilot refuses GUIDED ("Flight mode change failed") until its EKF has a position: ~25 s.
+        end = time.monotonic() + 90.0
+        while ardupilot.mode != GUIDED and time.monotonic() < end:
+            gcs.set_mode(GUIDED)
+            time.sleep(1.0)
+        assert ardupilot.mode == GUIDED, log_path.read_text()[-2000:]
+        end = time.monotonic() + 20.0
+        while (gcs.position is None or ardupilot.truth_deg is None) and time.monotonic() < end:
+            time.sleep(0.1)
+        assert gcs.position is not None, "the ground station saw no GLOBAL_POSITION_INT through the bridge"
+        assert ardupilot.truth_deg is not None, "no SIMSTATE from ArduPilot SITL"
+        time.sleep(1.0)  # standing still in GUIDED before the target
+        start_truth = ardupilot.truth_deg
+        here = (gcs.position.lat * 1e-7, gcs.position.lon * 1e-7)
+        north_m = 4.0
+        target = (here[0] + math.degrees(north_m / EARTH_RADIUS_M), here[1])
+        gcs.conn.mav.mission_item_int_send(1, 1, 0, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                           mavlink.MAV_CMD_NAV_WAYPOINT, 2, 0, 0, 0, 0, 0,
+                                           round(target[0] * 1e7), round(target[1] * 1e7), 0)
+        t0 = time.monotonic()
+        while gcs.reached == 0 and time.monotonic() - t0 < 40.0:
+            time.sleep(0.05)
+        assert gcs.reached >= 1, f"no MISSION_ITEM_REACHED in 40 s\n{log_path.read_text()[-2000:]}"
+        time.sleep(2.0)  # stopped, and staying
+        n, e = _north_east_m(start_truth, ardupilot.truth_deg)
+        gcs.set_mode(MANUAL)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(5.0) == 0
+    # The GPS's own error is in the target (it was placed from GLOBAL_POSITION_INT): measured 0.08-0.15 m.
+    assert math.hypot(n - north_m, e) < 0.5, f"stopped at north {n:.2f} m, east {e:.2f} m (target 4 m north)"
