@@ -9,8 +9,9 @@ bridge, then the GCS, each draining its socket, is deterministic for a given see
 from __future__ import annotations
 
 import math
+import subprocess
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.demo import free_udp_port
@@ -23,6 +24,22 @@ from sitl import Emulator, FaultConfig, VehicleConfig
 
 GCS_SYSID = 255
 GCS_COMPID = 190
+
+
+class _Closable(Protocol):
+    def close(self) -> None: ...
+
+
+def finish_process(proc: subprocess.Popen[Any], *closables: _Closable) -> None:
+    """End a test's bridge process if it is still running, close its output pipe, then close the
+    harness pieces around it (GCS, emulator) in the order given."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+    if proc.stdout:
+        proc.stdout.close()
+    for item in closables:
+        item.close()
 
 
 

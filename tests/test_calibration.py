@@ -12,6 +12,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from lockstep import finish_process
 from test_process_faults import OverrideSpy, WallClockEmulator
 
 from rover_bridge.params import load_profile, profile_from_dict
@@ -97,12 +98,7 @@ def test_calibrate_against_the_emulator_writes_a_patch_the_profile_loader_accept
         assert patch.control.left_curve_rad_s[-1] == pytest.approx(0.85 * patch.robot.max_wheel_rad_s, rel=0.05)
         assert patch.robot.track_width_m == pytest.approx(0.30, rel=0.03)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if proc.stdout:
-            proc.stdout.close()
-        emu.close()
+        finish_process(proc, emu)
 
 
 @pytest.mark.e2e
@@ -126,9 +122,4 @@ def test_calibrate_stops_the_rover_on_ctrl_c(tmp_path: Path) -> None:
         assert spy.wheel(1)[-2:] == [1500, 0] and spy.wheel(3)[-2:] == [1500, 0]  # neutral, then release
         assert not (tmp_path / "patch.toml").exists()
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if proc.stdout:
-            proc.stdout.close()
-        emu.close()
+        finish_process(proc, emu)

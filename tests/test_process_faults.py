@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from lockstep import GCS_COMPID, GCS_SYSID
+from lockstep import GCS_COMPID, GCS_SYSID, finish_process
 
 from rover_bridge.app import cli
 from rover_bridge.app.commands import run as run_command
@@ -168,13 +168,7 @@ def one_signal_trial(trial: int, signum: int) -> str:
     except AssertionError as exc:
         return f"trial {trial} ({signal.Signals(signum).name}): {exc}"
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if proc.stdout:
-            proc.stdout.close()
-        gcs.close()
-        emu.close()
+        finish_process(proc, gcs, emu)
 
 
 def test_sigterm_and_sigint_during_motion_release_the_overrides_in_20_trials() -> None:

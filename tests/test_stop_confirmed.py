@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from lockstep import finish_process
 from test_process_faults import Gcs, WallClockEmulator
 
 from rover_bridge.mavlink.dialect import mavlink
@@ -112,10 +113,4 @@ def test_sigterm_over_tcp_stops_the_wheels_and_the_stop_is_confirmed(tmp_path: P
             assert not emu.autopilot.has_override(1, emu.sim_time_us)
         assert "confirmed by the autopilot" in out and "NOT confirmed" not in out, out[-2000:]
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if proc.stdout:
-            proc.stdout.close()
-        gcs.close()
-        emu.close()
+        finish_process(proc, gcs, emu)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from lockstep import finish_process
 from test_process_faults import Gcs, OverrideSpy, WallClockEmulator
 
 from rover_bridge.app.guard import EXIT_STALLED, StopGuard
@@ -228,7 +229,7 @@ def test_sigterm_during_a_stalled_core_is_obeyed_within_200_ms(tmp_path: Path) -
         assert exited_after < 0.5, exited_after
         assert "stop sent by the guard (confirmed by the autopilot)" in out, out[-1500:]
     finally:
-        _finish(proc, gcs, emu)
+        finish_process(proc, gcs, emu)
 
 
 @pytest.mark.e2e
@@ -260,7 +261,7 @@ def test_a_stalled_loop_stops_the_watchdog_pings_and_the_rover(tmp_path: Path) -
         assert time.monotonic() - t_stall < 5.0
     finally:
         sock.close()
-        _finish(proc, gcs, emu)
+        finish_process(proc, gcs, emu)
 
 
 def test_the_process_tells_systemd_it_is_ready_and_pings_while_it_runs(tmp_path: Path) -> None:
@@ -274,16 +275,6 @@ def test_the_process_tells_systemd_it_is_ready_and_pings_while_it_runs(tmp_path:
     assert proc.returncode == 0, proc.stderr[-1000:]
     assert got[0].startswith("READY=1") and got[-1] == "STOPPING=1"
     assert 5 <= got.count("WATCHDOG=1") <= 12  # every 0.2 s for 1.5 s
-
-
-def _finish(proc: subprocess.Popen[bytes], gcs: Any, emu: Emulator) -> None:
-    if proc.poll() is None:
-        proc.kill()
-        proc.wait()
-    if proc.stdout:
-        proc.stdout.close()
-    gcs.close()
-    emu.close()
 
 
 def test_the_shipped_unit_uses_the_watchdog_and_restarts_failures_but_not_bad_profiles() -> None:
