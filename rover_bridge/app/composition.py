@@ -22,6 +22,8 @@ from rover_bridge.mavlink.wire import NOTHING, Incoming, Link, Outgoing, Reactio
 from rover_bridge.params import Profile
 
 HEARTBEAT_PERIOD_S = 1.0
+# A gyro sample waits at most this long for the next message or tick before the estimate flow gets it.
+GYRO_HOLD_MAX_S = 0.025
 
 
 class SubCore(Protocol):
@@ -51,6 +53,10 @@ class BridgeCore:
         self._ap_always = ids - EstimateCore.ALL_GYRO_IDS | {mavlink.MAVLINK_MSG_ID_ATTITUDE}  # the command core's
         self._ap_gyro = self.estimate.gyro_reads
         self._autopilot_reads = self._ap_always | self._ap_gyro
+        # Gyro samples the estimate flow has not been handed yet (see handle), with their arrival times;
+        # hold_gyro False hands each over at once (what the tests compare the held path with).
+        self.hold_gyro = True
+        self._gyro_held: list[tuple[Incoming, float]] = []
 
     def reads(self, link: Link) -> frozenset[int] | None:
         """Message ids the core reads from `link` now (None: all). The shell decodes only these and
@@ -74,7 +80,18 @@ class BridgeCore:
             refused = self.gate.check(inc, now_s)
             if refused is not None:
                 return refused
-        # Both flows see every message (unrolled: this runs for every frame the bridge reads).
+        # Both flows see every message (unrolled: this runs for every frame the bridge reads). A gyro
+        # sample reaches the estimate flow with the next message of any kind or the next tick, in
+        # arrival order and with its own arrival time, so the estimate is computed exactly as if it had
+        # been handed over at once; it costs less: the sample arrives first in the autopilot's burst
+        # (ATTITUDE before WHEEL_DISTANCE), alone in its pass, and is fused in the wheel reading's pass,
+        # where the estimate flow's code is already warm. Nothing reads the estimate in between: the
+        # held samples are handed over before any other message reaches either flow. Only samples of the
+        # source in use wait: any other may switch the source, and what is decoded with it (reads).
+        if from_autopilot and msg_id == self.estimate.gyro_source_id and self.hold_gyro:
+            self._gyro_held.append((inc, now_s))
+            return self.command.handle(inc, now_s)
+        held = self._hand_over_gyro() if self._gyro_held else ()
         rc = self.command.handle(inc, now_s)
         re_ = self.estimate.handle(inc, now_s)
         if from_autopilot and msg_id == mavlink.MAVLINK_MSG_ID_WHEEL_DISTANCE:
@@ -85,12 +102,20 @@ class BridgeCore:
                 for observe in self.wheel_observers:
                     observe(sample, now_s)
             self.command.set_slipping(self.estimate.slip.slipping)
-        if not (rc.out or re_.out):
+        if not (rc.out or re_.out or held):
             return re_ if re_.consumed else rc
-        return Reaction(consumed=rc.consumed or re_.consumed, out=rc.out + re_.out)
+        return Reaction(consumed=rc.consumed or re_.consumed, out=(*held, *rc.out, *re_.out))
+
+    def _hand_over_gyro(self) -> tuple[Outgoing, ...]:
+        """The held gyro samples to the estimate flow, oldest first; what it answered."""
+        held, self._gyro_held = self._gyro_held, []
+        out: list[Outgoing] = []
+        for inc, arrived_s in held:
+            out.extend(self.estimate.handle(inc, arrived_s).out)
+        return tuple(out)
 
     def tick(self, now_s: float) -> list[Outgoing]:
-        out: list[Outgoing] = []
+        out: list[Outgoing] = list(self._hand_over_gyro()) if self._gyro_held else []
         if self._next_heartbeat_s is None or now_s >= self._next_heartbeat_s:
             # Keep the 1 Hz grid; after a stall, restart it rather than bursting the missed beats.
             last = self._next_heartbeat_s
@@ -103,12 +128,14 @@ class BridgeCore:
 
     def next_deadline_s(self, now_s: float) -> float:
         hb = now_s if self._next_heartbeat_s is None else self._next_heartbeat_s
+        if self._gyro_held:
+            hb = min(hb, self._gyro_held[0][1] + GYRO_HOLD_MAX_S)
         return min(hb, self.command.next_deadline_s(now_s), self.estimate.next_deadline_s(now_s))
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Every subcore's safe-stop messages (neutral, release, the probe that confirms them), in order.
         The shell then keeps handling and ticking until `stop_settled` (see CommandCore.shutdown)."""
-        out: list[Outgoing] = []
+        out: list[Outgoing] = list(self._hand_over_gyro()) if self._gyro_held else []
         for sub in self._subcores:
             out.extend(sub.shutdown(now_s))
         return out

@@ -192,6 +192,11 @@ class EstimateCore:
         return self.gyro.source
 
     @property
+    def gyro_source_id(self) -> int | None:
+        """Message id of the gyro source in use (None before the first sample under 'auto')."""
+        return self.gyro.source_id
+
+    @property
     def gyro_reads(self) -> frozenset[int]:
         """Message ids of the gyro sources worth decoding now (see rover_bridge.estimate.gyro)."""
         return self.gyro.reads

@@ -44,6 +44,10 @@ class GyroSelector:
         self.update_reads(0.0)
 
     @property
+    def source_id(self) -> int | None:
+        return None if self.source is None else GYRO_MESSAGES[self.source][0]
+
+    @property
     def request_name(self) -> str:
         """The source whose stream is asked for: ATTITUDE under 'auto'."""
         return "attitude" if self.auto else str(self.source)
