@@ -109,7 +109,7 @@ def test_streams_ask_one_at_a_time_and_fall_back_on_denied() -> None:
     s = _streams()
     first = s.on_heartbeat(0.0)
     assert [o.msg.param1 for o in first] == [9000.0]  # one outstanding request
-    assert s.deadlines(0.0) == [STREAM_ACK_TIMEOUT_S]
+    assert s.next_deadline_s(0.0) == STREAM_ACK_TIMEOUT_S
     reaction = s.handle_ack(_ack(mavlink.MAV_RESULT_DENIED), 0.1)
     kinds = [o.msg.get_type() for o in reaction.out]
     assert reaction.consumed and kinds == ["REQUEST_DATA_STREAM", "COMMAND_LONG"]  # fallback, then the next

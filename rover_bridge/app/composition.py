@@ -91,7 +91,7 @@ class BridgeCore:
         if from_autopilot and msg_id == self.estimate.gyro_source_id and self.hold_gyro:
             self._gyro_held.append((inc, now_s))
             return self.command.handle(inc, now_s)
-        held = self._hand_over_gyro() if self._gyro_held else ()
+        held = self._hand_over_gyro() if self._gyro_held else []
         rc = self.command.handle(inc, now_s)
         re_ = self.estimate.handle(inc, now_s)
         if from_autopilot and msg_id == mavlink.MAVLINK_MSG_ID_WHEEL_DISTANCE:
@@ -106,16 +106,16 @@ class BridgeCore:
             return re_ if re_.consumed else rc
         return Reaction(consumed=rc.consumed or re_.consumed, out=(*held, *rc.out, *re_.out))
 
-    def _hand_over_gyro(self) -> tuple[Outgoing, ...]:
+    def _hand_over_gyro(self) -> list[Outgoing]:
         """The held gyro samples to the estimate flow, oldest first; what it answered."""
         held, self._gyro_held = self._gyro_held, []
         out: list[Outgoing] = []
         for inc, arrived_s in held:
             out.extend(self.estimate.handle(inc, arrived_s).out)
-        return tuple(out)
+        return out
 
     def tick(self, now_s: float) -> list[Outgoing]:
-        out: list[Outgoing] = list(self._hand_over_gyro()) if self._gyro_held else []
+        out = self._hand_over_gyro()
         if self._next_heartbeat_s is None or now_s >= self._next_heartbeat_s:
             # Keep the 1 Hz grid; after a stall, restart it rather than bursting the missed beats.
             last = self._next_heartbeat_s
@@ -135,7 +135,7 @@ class BridgeCore:
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Every subcore's safe-stop messages (neutral, release, the probe that confirms them), in order.
         The shell then keeps handling and ticking until `stop_settled` (see CommandCore.shutdown)."""
-        out: list[Outgoing] = list(self._hand_over_gyro()) if self._gyro_held else []
+        out = self._hand_over_gyro()
         for sub in self._subcores:
             out.extend(sub.shutdown(now_s))
         return out

@@ -54,7 +54,6 @@ Vec = npt.NDArray[np.float64]
 Mat = npt.NDArray[np.float64]
 
 IX, IY, IYAW, IV, IW, IB, IKT, IKR = range(8)
-N_BASE = 6
 N_CAL = 8
 
 # Process noise densities (per second). Chosen so v and omega follow the sensors closely
@@ -118,40 +117,41 @@ def _arc_derivatives(d: float) -> tuple[float, float]:
     return (d * c - s) / (d * d), (d * s - (1.0 - c)) / (d * d)
 
 
+def _motion_step(x_m: float, y_m: float, yaw: float, v: float, w: float, dt_s: float
+                 ) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """fx's new (x, y, yaw) and F_jacobian's six pose entries (d x, d y by yaw, v, omega), which share
+    every intermediate; F[IYAW, IW] is dt_s. One function for fx, F_jacobian and predict_to."""
+    ds, dyaw = v * dt_s, w * dt_s
+    a, b = arc_factors(dyaw)
+    da, db = _arc_derivatives(dyaw)
+    c, s = math.cos(yaw), math.sin(yaw)
+    fwd, left = ds * a, ds * b
+    dfwd, dleft = ds * da * dt_s, ds * db * dt_s  # d/domega: dyaw = omega dt
+    return (x_m + c * fwd - s * left, y_m + s * fwd + c * left, wrap_angle(yaw + dyaw),
+            -s * fwd - c * left, c * fwd - s * left,  # d/dyaw
+            dt_s * (c * a - s * b), dt_s * (s * a + c * b),  # d/dv: ds = v dt
+            c * dfwd - s * dleft, s * dfwd + c * dleft)  # d/domega
+
+
 def fx(x: Vec, dt_s: float) -> Vec:
     """Motion model: move along the arc of (v, omega) for dt_s; everything else is constant."""
     out = x.copy()
-    yaw, v, w = float(x[IYAW]), float(x[IV]), float(x[IW])
-    ds, dyaw = v * dt_s, w * dt_s
-    a, b = arc_factors(dyaw)
-    c, s = math.cos(yaw), math.sin(yaw)
-    fwd, left = ds * a, ds * b
-    out[IX] = x[IX] + c * fwd - s * left
-    out[IY] = x[IY] + s * fwd + c * left
-    out[IYAW] = wrap_angle(yaw + dyaw)
+    out[IX], out[IY], out[IYAW] = _motion_step(float(x[IX]), float(x[IY]), float(x[IYAW]), float(x[IV]),
+                                               float(x[IW]), dt_s)[:3]
     return out
+
+
+def _write_jacobian(F: Mat, step: tuple[float, ...], dt_s: float) -> None:
+    F[IX, IYAW], F[IY, IYAW], F[IX, IV], F[IY, IV], F[IX, IW], F[IY, IW] = step[3:]
+    F[IYAW, IW] = dt_s
 
 
 def F_jacobian(x: Vec, dt_s: float, out: Mat | None = None) -> Mat:
     """d fx / d x; written into `out` (an identity matrix, or one this function filled before: it
     always writes the same entries) to spare an allocation per step."""
     F = np.eye(x.shape[0]) if out is None else out
-    yaw, v, w = float(x[IYAW]), float(x[IV]), float(x[IW])
-    ds, dyaw = v * dt_s, w * dt_s
-    a, b = arc_factors(dyaw)
-    da, db = _arc_derivatives(dyaw)
-    c, s = math.cos(yaw), math.sin(yaw)
-    fwd, left = ds * a, ds * b
-    F[IX, IYAW] = -s * fwd - c * left
-    F[IY, IYAW] = c * fwd - s * left
-    # d/dv: ds = v dt
-    F[IX, IV] = dt_s * (c * a - s * b)
-    F[IY, IV] = dt_s * (s * a + c * b)
-    # d/domega: dyaw = omega dt
-    dfwd, dleft = ds * da * dt_s, ds * db * dt_s
-    F[IX, IW] = c * dfwd - s * dleft
-    F[IY, IW] = s * dfwd + c * dleft
-    F[IYAW, IW] = dt_s
+    _write_jacobian(F, _motion_step(float(x[IX]), float(x[IY]), float(x[IYAW]), float(x[IV]), float(x[IW]),
+                                    dt_s), dt_s)
     return F
 
 
@@ -212,10 +212,6 @@ def H_wheels(x: Vec, track_width_m: float) -> Mat:
         row_v += [0.5 * (dul_kt + dur_kt), 0.5 * (dul_kr + dur_kr)]
         row_w += [(dur_kt - dul_kt) / L, (dur_kr - dul_kr) / L]
     return np.array([row_v, row_w])
-
-
-# H of the gyro for each state size (constant: the gyro reads omega + bias).
-_H_GYRO = {n: np.array([[1.0 if i in (IW, IB) else 0.0 for i in range(n)]]) for n in (N_BASE, N_CAL)}
 
 
 def hx_gyro(x: Vec) -> Vec:
@@ -383,34 +379,21 @@ class WheelGyroEKF:
             q[IKT] = q[IKR] = Q_CAL * dt
         ekf = self.ekf
         self.predict_steps += steps
-        F, q = self._F, self._q
+        F = self._F
         for _ in range(steps):
-            # fx, F_jacobian and process_noise_diagonal in one pass (they share every intermediate; this
-            # runs for every measurement), in the same arithmetic: tests hold it to the three functions.
+            # fx, F_jacobian and process_noise_diagonal in one pass over _motion_step (this runs for every
+            # measurement), in the same arithmetic: tests hold it to the three functions.
             x = ekf.x
             yaw, v, w = float(x[IYAW]), float(x[IV]), float(x[IW])
-            ds, dyaw = v * dt, w * dt
-            a, b = arc_factors(dyaw)
-            da, db = _arc_derivatives(dyaw)
-            c, sn = math.cos(yaw), math.sin(yaw)
-            fwd, left = ds * a, ds * b
-            F[IX, IYAW] = -sn * fwd - c * left
-            F[IY, IYAW] = c * fwd - sn * left
-            F[IX, IV] = dt * (c * a - sn * b)
-            F[IY, IV] = dt * (sn * a + c * b)
-            dfwd, dleft = ds * da * dt, ds * db * dt
-            F[IX, IW] = c * dfwd - sn * dleft
-            F[IY, IW] = sn * dfwd + c * dleft
-            F[IYAW, IW] = dt
+            step = _motion_step(float(x[IX]), float(x[IY]), yaw, v, w, dt)
+            _write_jacobian(F, step, dt)
             P = F @ ekf.P @ F.T
             dist_m, turn_rad = abs(v) * dt, abs(w) * dt
             q[IX] = q[IY] = Q_POS_PER_M * dist_m
             q[IYAW] = Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad
-            P.flat[:: self.n + 1] += q  # Q is diagonal; the rest of q is constant per dt (set below)
+            P.flat[:: self.n + 1] += q  # Q is diagonal; the rest of q is constant per dt (set above)
             out = x.copy()
-            out[IX] = x[IX] + c * fwd - sn * left
-            out[IY] = x[IY] + sn * fwd + c * left
-            out[IYAW] = wrap_angle(yaw + dyaw)
+            out[IX], out[IY], out[IYAW] = step[:3]
             ekf.x, ekf.P = out, P
             self._turned_since_gyro_rad += w * dt
             self._moved_since_wheels_m += v * dt

@@ -163,13 +163,9 @@ class StreamRequests:
                 )
         return out
 
-    def deadlines(self, now_s: float) -> list[float]:
-        """When pump or check_rates next has something to do (mirrors them exactly)."""
-        first = self.next_deadline_s(now_s)
-        return [] if first == math.inf else [first]
-
     def next_deadline_s(self, now_s: float) -> float:
-        """The earliest of deadlines() (inf: none), in one pass: it runs on every turn of the loop."""
+        """When pump or check_rates next has something to do (mirrors them exactly; inf: nothing), in one
+        pass: it runs on every turn of the loop."""
         # One request outstanding at a time, so a queued stream waits for the pending ACK's timeout,
         # not "now" (which would spin the loop until the ACK came).
         pending = math.inf

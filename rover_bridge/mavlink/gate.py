@@ -70,7 +70,6 @@ class SecurityPolicy:
         self.allowed = parse_sources(params.allowed_sources)
         self.active = self.require_signed or self.have_key or bool(self.allowed)  # fixed for the profile
 
-
     def is_command(self, inc: Incoming, identity: Identity) -> bool:
         kind = inc.msg.get_type()
         if inc.link is Link.GCS:

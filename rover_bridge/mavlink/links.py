@@ -192,13 +192,12 @@ class Endpoint:
     def send(self, msg: MAVLinkMessage, src_system: int, src_component: int) -> bytes:
         """Pack `msg` with the given source ids, write it, and return the bytes written."""
         mav = self.conn.mav
-        fast = None
+        frame: bytes | None = None
         if not mav.signing.sign_outgoing:  # fastcodec packs pymavlink's bytes for the bridge's hot messages
-            fast = fastcodec.pack(msg, mav.seq, src_system, src_component)
-        if fast is None:
+            frame = fastcodec.pack(msg, mav.seq, src_system, src_component)
+        if frame is None:
             mav.srcSystem, mav.srcComponent = src_system, src_component
-            fast = msg.pack(mav)
-        frame: bytes = fast
+            frame = msg.pack(mav)
         mav.seq = (mav.seq + 1) % 256
         self.conn.write(frame)
         self.tx_frames += 1
