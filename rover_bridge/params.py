@@ -278,7 +278,9 @@ class EstimatorParams:
 
 @dataclass(frozen=True, slots=True)
 class OdometryParams:
-    rate_hz: float = _p(30.0, "How often ODOMETRY is published.", unit="Hz", lo=0.5, hi=200.0)
+    rate_hz: float = _p(30.0, "How often ODOMETRY is published (on average: one may leave up to half a "
+                                 "period early, with a message the bridge handles anyway).", unit="Hz", lo=0.5,
+                        hi=200.0)
     targets: str = _p(
         "gcs", "Where ODOMETRY goes: the ground stations, the autopilot (external navigation), both, "
         "or nowhere.", choices=("gcs", "autopilot", "both", "none"))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -191,6 +192,54 @@ def test_publisher_keeps_its_grid_and_restarts_it_after_a_stall() -> None:
     assert pub.due(5.0) and pub.next_s == pytest.approx(5.1)  # a stall: a new grid, no burst
     assert not OdometryPublisher(OdometryParams(targets="none")).due(0.0)
     assert OdometryPublisher(OdometryParams(targets="both")).links == (Link.GCS, Link.AUTOPILOT)
+
+
+def test_publisher_sends_early_only_within_the_window_and_keeps_its_grid() -> None:
+    pub = OdometryPublisher(OdometryParams(rate_hz=10.0))  # window: 50 ms before each grid point
+    assert pub.due(0.0, early=True) and pub.next_s == pytest.approx(0.1)
+    assert pub.early_deadline_s(0.0) == pytest.approx(0.05) and pub.deadline_s(0.0) == pytest.approx(0.1)
+    assert not pub.due(0.049, early=True) and not pub.due(0.06)  # before the window; not due without early
+    assert pub.due(0.06, early=True) and pub.next_s == pytest.approx(0.2)  # early: the grid point, not 0.16
+    assert pub.due(0.23) and pub.next_s == pytest.approx(0.3)  # late (no pass in the window)
+    assert pub.early_deadline_s(0.23) == pytest.approx(0.28)  # the next early one half a period after it
+    assert OdometryPublisher(OdometryParams(targets="none")).early_deadline_s(0.0) is None
+
+
+def test_early_odometry_is_never_closer_than_the_autopilot_takes_it() -> None:
+    # ArduPilot's EKF3 drops external navigation less than 20 ms after the previous sample.
+    pub = OdometryPublisher(OdometryParams(rate_hz=30.0, targets="both"))
+    assert pub.due(1.0) and pub.early_deadline_s(1.0) == pytest.approx(1.021)  # not 1.0167
+    assert not pub.due(1.0205, early=True) and pub.due(1.0215, early=True)
+    fast = OdometryPublisher(OdometryParams(rate_hz=50.0, targets="autopilot"))
+    assert fast.due(1.0) and fast.early_deadline_s(1.0) == pytest.approx(1.02)  # its grid point: never early
+    gcs = OdometryPublisher(OdometryParams(rate_hz=30.0))  # ground stations only: the whole window
+    assert gcs.due(1.0) and gcs.early_deadline_s(1.0) == pytest.approx(1.0 + 0.5 / 30.0)
+
+
+@settings(max_examples=300, deadline=None)
+@given(rate_hz=st.sampled_from((10.0, 30.0, 40.0, 50.0)), targets=st.sampled_from(("gcs", "autopilot")),
+       gaps=st.lists(st.tuples(st.floats(1e-4, 1.0), st.booleans()), min_size=2, max_size=300))
+def test_early_odometry_keeps_the_average_rate_and_its_spacing(rate_hz: float, targets: str,
+                                                               gaps: list[tuple[float, bool]]) -> None:
+    # Passes at random times, at most half a period apart (a busy link), some made anyway (early allowed),
+    # some at deadlines: ODOMETRY never leaves before its window, never twice for one grid point, an
+    # early one to the autopilot never within 21 ms of the one before, any at least half a period
+    # apart, and the rate holds (no drift, no burst).
+    pub = OdometryPublisher(OdometryParams(rate_hz=rate_hz, targets=targets))
+    period = pub.period_s
+    t, sent = 1.0, []
+    for gap, early in gaps:
+        t += gap * 0.5 * period
+        grid = pub.next_s
+        if pub.due(t, early):
+            assert grid is None or t >= grid - pub.early_s - 1e-12
+            assert grid is None or pub.next_s == pytest.approx(grid + period)
+            if sent and early and t < grid and targets == "autopilot":
+                assert t - sent[-1] >= 0.021 - 1e-9
+            sent.append(t)
+    assert all(b - a >= 0.5 * period - 1e-9 for a, b in itertools.pairwise(sent))
+    assert all(b - a <= 2.0 * period + 1e-9 for a, b in itertools.pairwise(sent))
+    assert abs(len(sent) - (t - 1.0) / period) <= 2
 
 
 def test_publisher_packs_frd_signs_and_the_unobserved_variance() -> None:

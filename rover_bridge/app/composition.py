@@ -3,11 +3,13 @@
 `BridgeCore` composes the command flow (rover_bridge.command.core.CommandCore) and the estimate flow
 (rover_bridge.estimate.core.EstimateCore), which share one Identity and one Reporter, and sends
 the bridge's own HEARTBEAT. The shell (rover_bridge.app.loop) feeds every decoded message to
-`handle`, calls `tick` at `next_deadline_s()`, and calls `shutdown` on every exit path.
+`handle`, calls `tick` at `next_deadline_s()` (and `early_tick` in a pass it makes anyway once
+`next_early_s()` has come), and calls `shutdown` on every exit path.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Protocol
 
@@ -131,6 +133,18 @@ class BridgeCore:
         if self._gyro_held:
             hb = min(hb, self._gyro_held[0][1] + GYRO_HOLD_MAX_S)
         return min(hb, self.command.next_deadline_s(now_s), self.estimate.next_deadline_s(now_s))
+
+    def next_early_s(self, now_s: float) -> float:
+        """From when early_tick has something to send: an output that may leave before its deadline in a
+        pass the shell makes anyway (a message arrived). Only ODOMETRY does (OdometryPublisher.due)."""
+        early = self.estimate.next_early_s(now_s)
+        return math.inf if early is None else early
+
+    def early_tick(self, now_s: float) -> list[Outgoing]:
+        """The outputs that may leave early (see next_early_s), the held gyro samples fused first, as in tick."""
+        out = self._hand_over_gyro()
+        out.extend(self.estimate.odometry_due(now_s))
+        return out
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Every subcore's safe-stop messages (neutral, release, the probe that confirms them), in order.

@@ -71,6 +71,7 @@ class Runner:
         self.forwarded = 0
         self.consumed = 0
         self.ticks = 0
+        self.early_ticks = 0
         self.backlog = False
         self.next_deadline_s = 0.0
         self.passes = 0
@@ -111,11 +112,16 @@ class Runner:
         for ep in self.endpoints:
             ep.flush()  # this pass's forwarded frames, in as few writes as fit
         deadline = self.core.next_deadline_s(now_s)
-        if now_s >= deadline:
+        ticked = now_s >= deadline
+        if ticked:
             self.ticks += 1
             self.send_all(self.core.tick(now_s))
-            deadline = self.core.next_deadline_s(now_s)
-        self.next_deadline_s = deadline
+        if now_s >= self.core.next_early_s(now_s):
+            # Awake anyway: an output that may leave early goes now rather than waking the loop later.
+            self.early_ticks += 1
+            self.send_all(self.core.early_tick(now_s))
+            ticked = True
+        self.next_deadline_s = self.core.next_deadline_s(now_s) if ticked else deadline
 
     def _on_message(self, ep: Endpoint, msg: MAVLinkMessage | RawFrame, now_s: float) -> None:
         if type(msg) is RawFrame:  # no core reads it: log and forward the bytes

@@ -133,8 +133,10 @@ def replay(path: str | Path, profile: Profile) -> ReplayResult:
     frames = ap_frames = 0
     clock: float | None = None
 
-    def tick(at_s: float) -> None:
-        rows.extend(OdometryRow.from_message(o.msg) for o in core.estimate.tick(at_s)
+    def tick(at_s: float, early: bool) -> None:
+        # Where the live loop published, ODOMETRY may have left early (in a pass it made anyway).
+        out = core.estimate.tick(at_s) + (core.estimate.odometry_due(at_s) if early else [])
+        rows.extend(OdometryRow.from_message(o.msg) for o in out
                     if o.msg.get_msgId() == mavlink.MAVLINK_MSG_ID_ODOMETRY)
 
     for msg in _frames(path):
@@ -144,14 +146,14 @@ def replay(path: str | Path, profile: Profile) -> ReplayResult:
             if msg.get_type() == "ODOMETRY":
                 live.append(OdometryRow.from_message(msg))
                 if ticks_from_log:
-                    tick(t)
+                    tick(t, early=True)
             continue
         if clock is None:
             clock = t
         if not ticks_from_log:
             while (deadline := core.estimate.next_deadline_s(clock)) <= t:
                 clock = max(clock, deadline)
-                tick(clock)
+                tick(clock, early=False)
                 if core.estimate.next_deadline_s(clock) <= clock:
                     break  # guard: a deadline that did not move on is left for the next frame
         clock = max(clock, t)

@@ -311,8 +311,7 @@ class EstimateCore:
         out += self.streams.check_rates(now_s)
         if not self.frame.ready:
             out += self.frame.decide(now_s, self._pose_at_stamp if self._have_wheels else None)
-        if self._have_wheels and self.frame.ready and self.publisher.due(now_s):
-            out += self._odometry(now_s)
+        out += self._publish(now_s, early=False)
         st = self.state if self.calibration_reports.enabled and self._have_wheels else None
         if st is not None:
             out += self.calibration_reports.tick(now_s, True, st.track_width_m, st.left_radius_m, st.right_radius_m)
@@ -330,6 +329,22 @@ class EstimateCore:
                 first = odom
         cal = self.calibration_reports.next_s
         return first if cal is None or cal >= first else cal
+
+    def odometry_due(self, now_s: float) -> list[Outgoing]:
+        """ODOMETRY if one is due or may leave early (OdometryPublisher.due): what the shell calls in a
+        pass it makes anyway once next_early_s has come. tick publishes only what is due."""
+        return self._publish(now_s, early=True)
+
+    def _publish(self, now_s: float, early: bool) -> list[Outgoing]:
+        if self._have_wheels and self.frame.ready and self.publisher.due(now_s, early):
+            return self._odometry(now_s)
+        return []
+
+    def next_early_s(self, now_s: float) -> float | None:
+        """From when odometry_due may publish in a pass made anyway (None: nothing to publish yet)."""
+        if not (self._have_wheels and self.frame.ready):
+            return None
+        return self.publisher.early_deadline_s(now_s)
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Nothing to stop: the estimate flow sends no commands that persist."""

@@ -80,6 +80,17 @@ def _rotate_xy(cov: list[list[float]], angle_rad: float) -> list[list[float]]:
     return [[sum(tc[i][k] * t[j][k] for k in range(6)) for j in range(6)] for i in range(6)]
 
 
+# ODOMETRY may leave up to this fraction of its period before its grid point, in a pass the bridge
+# makes anyway (a message arrived, another output was due): a wake-up of its own costs more than the
+# message. The grid stays, so the rate is exact on average; an early one is also at least this
+# fraction of a period after the one before (one that left late does not bring it closer).
+EARLY_FRACTION = 0.5
+# ... but when it goes to the autopilot, never closer than this to the one before: ArduPilot's EKF3
+# drops external navigation that comes less than 20 ms after the previous sample (AP_NavEKF3.h,
+# extNavIntervalMin_ms).
+EARLY_MIN_INTERVAL_S = 0.021
+
+
 class OdometryPublisher:
     """Where ODOMETRY goes, when the next one is due, and how one is packed."""
 
@@ -87,23 +98,41 @@ class OdometryPublisher:
         self.links = TARGET_LINKS[params.targets]
         self.unobserved_variance = params.resolved_unobserved_variance
         self.period_s = 1.0 / params.rate_hz
+        self.early_s = EARLY_FRACTION * self.period_s
+        # An early one is never closer than the window to the one before (nor, to the autopilot, than its EKF takes).
+        self.min_interval_s = max(self.early_s, EARLY_MIN_INTERVAL_S if Link.AUTOPILOT in self.links else 0.0)
         self.next_s: float | None = None
+        self._last_s = -math.inf  # when the last one left
         self.sent = 0
 
-    def due(self, now_s: float) -> bool:
-        """True (and the grid moved on) when an ODOMETRY is due at now_s."""
-        if not self.links or not (self.next_s is None or now_s >= self.next_s):
-            return False
+    def due(self, now_s: float, early: bool = False) -> bool:
+        """True (and the grid moved on) when an ODOMETRY is due at now_s; with `early`, also from
+        early_deadline_s on (see EARLY_FRACTION)."""
         last = self.next_s
+        if not self.links or not (last is None or now_s >= (self._early_from(last) if early else last)):
+            return False
         # Keep the grid; after a stall restart it instead of bursting the missed messages.
         base = now_s if last is None or now_s - last > self.period_s else last
         self.next_s = base + self.period_s
+        self._last_s = now_s
         return True
 
+    def _early_from(self, next_s: float) -> float:
+        # The window before the grid point, but never within min_interval_s of the last one (to the
+        # autopilot from about 48 Hz on: never early). On the grid point itself it is due either way.
+        return min(next_s, max(next_s - self.early_s, self._last_s + self.min_interval_s))
+
     def deadline_s(self, now_s: float) -> float | None:
+        """When the next ODOMETRY must leave (None: it goes nowhere)."""
         if not self.links:
             return None
         return now_s if self.next_s is None else self.next_s
+
+    def early_deadline_s(self, now_s: float) -> float | None:
+        """From when the next ODOMETRY may leave with a pass made anyway (due(early=True))."""
+        if not self.links:
+            return None
+        return now_s if self.next_s is None else self._early_from(self.next_s)
 
     def message(self, x: Vec, P: Mat, time_usec: int, reset_counter: int, quality_0_100: int,
                 anchor: LocalAnchor | None = None) -> MAVLinkMessage:

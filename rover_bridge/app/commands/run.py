@@ -166,7 +166,7 @@ def write_stats(path: str, runner: Runner, verifier: SignatureVerifier | None = 
         "command": dict(core.command.counters),
         "estimate": dict(core.estimate.counters),
         "runner": {"forwarded": runner.forwarded, "consumed": runner.consumed, "ticks": runner.ticks,
-                   "pack_errors": runner.pack_errors,
+                   "early_ticks": runner.early_ticks, "pack_errors": runner.pack_errors,
                    "passes": runner.passes},
         "links": {ep.url: {"rx": ep.rx_frames, "rx_bad": ep.rx_bad, "tx": ep.tx_frames} for ep in runner.endpoints},
         "statustext_suppressed": dict(core.reporter.limiter.suppressed),
