@@ -287,16 +287,22 @@ sys.exit(code)
 #                      reaches the command core, which says whether the autopilot is there)
 #   routing + outputs  as routing, plus constant RC_CHANNELS_OVERRIDE at 50 Hz to the autopilot and
 #                      ODOMETRY at 30 Hz to the GCS (the nominal load's own outputs), on their own grids
+#                      (ODOMETRY, as the real one, also early in a pass made anyway: OdometryPublisher)
 #   command flow only  the real command core (requests, limiter, IK, overrides); the estimate core stubbed
 #   estimate flow only the real estimate core (wheels, gyro, EKF, ODOMETRY); the command core stubbed
+#   free estimator     the real command core, and an estimate core that costs nothing: what it reads is
+#                      still decoded and handed to it, it answers with a constant ODOMETRY at 30 Hz (the
+#                      bound for any faster estimator behind this shell, native code included)
 STUBS: dict[str, str] = {"routing": "cores stubbed: routing", "outputs": "cores stubbed: routing + outputs",
-                         "command": "command flow only", "estimate": "estimate flow only"}
+                         "command": "command flow only", "estimate": "estimate flow only",
+                         "free_estimator": "command flow + free estimator"}
 _STUB_MAIN = """
 import sys
 from rover_bridge.app import composition
 from rover_bridge.app.cli import main
 from rover_bridge.command.core import CommandCore
 from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.estimate.publish import EARLY_FRACTION
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.wire import NOTHING, Link, Outgoing
 STUB = {stub!r}
@@ -307,27 +313,39 @@ def stub_core(cls, keep_heartbeat):
                   if keep_heartbeat else (lambda self, inc, now_s: NOTHING))
     cls.tick = lambda self, now_s: []
     cls.next_deadline_s = lambda self, now_s: now_s + 1.0
+grid = [0.0, 0.0]
+odometry = mavlink.MAVLink_odometry_message(0, 1, 8, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                            0.0, 0.0, 0.0, [0.0] * 21, [0.0] * 21, 0, 0, 100)
+EARLY_S = EARLY_FRACTION / 30.0
+def odometry_tick(now_s):  # as OdometryPublisher: on a 30 Hz grid, sent early in a pass made anyway
+    if now_s < grid[1] - EARLY_S:
+        return []
+    grid[1] = max(grid[1] + 1.0 / 30.0, now_s)
+    return [Outgoing(Link.GCS, odometry, 1, 197)]
+def odometry_stub():
+    EstimateCore.odometry_due = lambda self, now_s: odometry_tick(now_s)
+    EstimateCore.next_early_s = lambda self, now_s: grid[1] - EARLY_S
 if STUB == "command":
     stub_core(EstimateCore, False)
+elif STUB == "free_estimator":
+    stub_core(EstimateCore, False)
+    odometry_stub()
+    EstimateCore.tick = lambda self, now_s: odometry_tick(now_s)
+    EstimateCore.next_deadline_s = lambda self, now_s: grid[1]
 elif STUB == "estimate":
     stub_core(CommandCore, True)
 else:
     stub_core(EstimateCore, False)
     stub_core(CommandCore, True)
-    grid = [0.0, 0.0]
     override = mavlink.MAVLink_rc_channels_override_message(1, 1, 1500, 65535, 1500, *([65535] * 15))
-    odometry = mavlink.MAVLink_odometry_message(0, 1, 8, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
-                                                0.0, 0.0, 0.0, [0.0] * 21, [0.0] * 21, 0, 0, 100)
     def outputs_tick(self, now_s):
         out = []
         if now_s >= grid[0]:
             grid[0] = max(grid[0] + 0.02, now_s)
             out.append(Outgoing(Link.AUTOPILOT, override, 255, 190))
-        if now_s >= grid[1]:
-            grid[1] = max(grid[1] + 1.0 / 30.0, now_s)
-            out.append(Outgoing(Link.GCS, odometry, 1, 197))
-        return out
+        return out + odometry_tick(now_s)
     if STUB == "outputs":
+        odometry_stub()
         CommandCore.tick = outputs_tick
         CommandCore.next_deadline_s = lambda self, now_s: min(grid)
 sys.exit(main(sys.argv[1:]))
@@ -439,7 +457,7 @@ class PlainRouter(Bridge):
         self.log_path = os.path.join(workdir, "router.log")
         self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen([*os.environ.get("BENCH_PREFIX", "").split(),
-                                      *self_cmd("_router", str(self.ap_port), str(self.gcs_port))],
+                                      *self_cmd("_router", str(self.ap_port), str(self.gcs_port), self.stats_path)],
                                      stdout=self._log, stderr=subprocess.STDOUT, cwd=REPO)
 
 
@@ -501,15 +519,23 @@ def echo_main(port: int) -> None:
             conn.write(m.get_msgbuf())
 
 
-def router_main(ap_port: int, gcs_port: int) -> None:
-    """PlainRouter's process: two pymavlink udpin links, every frame decoded and sent to the other."""
+def router_main(ap_port: int, gcs_port: int, stats_path: str) -> None:
+    """PlainRouter's process: two pymavlink udpin links, every frame decoded and sent to the other.
+    On SIGTERM it writes how often it woke up (as the bridge's `passes`) to `stats_path`."""
     from rover_bridge.mavlink.dialect import mavutil
     ap: Any = mavutil.mavlink_connection(f"udpin:{LOCAL}:{ap_port}", dialect="ardupilotmega")
     gcs: Any = mavutil.mavlink_connection(f"udpin:{LOCAL}:{gcs_port}", dialect="ardupilotmega")
-    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
+    wakes = 0
+
+    def stop(*_: Any) -> None:
+        Path(stats_path).write_text(json.dumps({"runner": {"passes": wakes}}))
+        os._exit(0)
+
+    signal.signal(signal.SIGTERM, stop)
     peers = {ap.fd: (ap, gcs), gcs.fd: (gcs, ap)}
     while True:
         readable, _, _ = select.select(list(peers), [], [], 1.0)
+        wakes += 1
         for fd in readable:
             src, dst = peers[fd]
             while (m := src.recv_msg()) is not None:
@@ -1332,7 +1358,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--warmup-s", type=float, default=3.0)
     p.add_argument("--parts", action="store_true",
                    help="also run this tree's bridge with parts of its cores stubbed (routing; routing + "
-                        "outputs; one flow only): where its CPU goes")
+                        "outputs; one flow only; the command flow with an estimator that costs nothing): "
+                        "where its CPU goes")
     p = sub.add_parser("regularity")
     p.add_argument("--seconds", type=float, default=8.0)
     p.add_argument("--repeats", type=int, default=3)
@@ -1359,6 +1386,7 @@ def main(argv: list[str] | None = None) -> None:
     p = sub.add_parser("_router")
     p.add_argument("ap_port", type=int)
     p.add_argument("gcs_port", type=int)
+    p.add_argument("stats_path")
     p = sub.add_parser("_flood")
     p.add_argument("port", type=int)
     p.add_argument("rate", type=float)
@@ -1367,7 +1395,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.cmd == "_echo":
         echo_main(args.port)
     elif args.cmd == "_router":
-        router_main(args.ap_port, args.gcs_port)
+        router_main(args.ap_port, args.gcs_port, args.stats_path)
     elif args.cmd == "_flood":
         flood_main(args.port, args.rate, args.seconds)
     elif args.cmd == "all":
