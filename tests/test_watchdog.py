@@ -23,7 +23,7 @@ import pytest
 from lockstep import finish_process
 from test_process_faults import Gcs, OverrideSpy, WallClockEmulator
 
-from rover_bridge.app.guard import EXIT_STALLED, StopGuard
+from rover_bridge.app.guard import EXIT_STALLED, LINGER_S, StopGuard
 from rover_bridge.app.systemd import SystemdNotifier
 from rover_bridge.mavlink.dialect import mavlink
 from sitl import Emulator, VehicleConfig
@@ -141,6 +141,36 @@ def test_guard_stops_a_loop_that_stalls_and_exits_1() -> None:
         g.guard.join(timeout=2.0)
         assert g.link.written == [b"STOP"] and g.exits == [EXIT_STALLED]
         assert "has not turned" in g.guard.emergency_reason
+    finally:
+        g.close()
+
+
+def test_guard_sleeps_while_the_loop_turns_and_still_catches_a_stall_on_time() -> None:
+    g = Guarded(stall_s=0.3)
+    try:
+        end = time.monotonic() + 1.0
+        while (now := time.monotonic()) < end:  # a loop turning every 10 ms for a second
+            g.guard.passed(now)
+            time.sleep(0.01)
+        assert g.guard.wakeups <= 6 and g.exits == []  # polling at 50 ms would have woken 20 times
+        last = time.monotonic()
+        g.guard.passed(last)
+        g.guard.join(timeout=2.0)  # the loop stops turning
+        assert g.exits == [EXIT_STALLED]
+        assert 0.3 <= time.monotonic() - last < 0.3 + LINGER_S + 0.05  # then it waits LINGER_S for an answer
+    finally:
+        g.close()
+
+
+def test_guard_quits_at_once_however_long_it_would_sleep() -> None:
+    g = Guarded(stall_s=30.0)
+    try:
+        g.guard.passed(time.monotonic())
+        time.sleep(0.05)
+        t0 = time.monotonic()
+        g.guard.quit()
+        g.guard.join(timeout=2.0)
+        assert not g.guard.is_alive() and time.monotonic() - t0 < 0.1 and g.exits == []
     finally:
         g.close()
 

@@ -31,6 +31,8 @@ from rover_bridge.mavlink.dialect import mavlink
 GRACE_S = 0.08  # the loop starts its own stop within this, or the guard does it
 LINGER_S = 0.1  # after an emergency stop: how long to wait for the autopilot's answer before exiting
 DONE_MARGIN_S = 0.3  # the loop's own stop may take its confirmation wait plus this
+# Until the loop's first pass, how often to look; after it, the thread sleeps until the moment a stall
+# would be due (a wake-up costs a companion computer more CPU than its check: no polling).
 POLL_S = 0.05
 EXIT_STALLED = 1
 
@@ -64,6 +66,8 @@ class StopGuard(threading.Thread):
         self._stopping = threading.Event()
         self._done = threading.Event()
         self._quit = threading.Event()
+        self._quit_r, self._quit_w = os.pipe()  # quit() wakes the thread's select at once
+        self.wakeups = 0
 
     # ------------------------------------------------------------------ called by the loop
     def passed(self, now_s: float) -> None:
@@ -77,16 +81,27 @@ class StopGuard(threading.Thread):
 
     def quit(self) -> None:
         """The process is ending normally: stop watching."""
+        if self._quit.is_set():
+            return
         self._quit.set()
         self._done.set()
+        _poke(self._quit_w)
+        os.close(self._quit_w)  # once: its number may be reused after this
 
     # ------------------------------------------------------------------ the thread
     def run(self) -> None:
+        try:
+            self._watch()
+        finally:
+            os.close(self._quit_r)
+
+    def _watch(self) -> None:
         while not self._quit.is_set():
-            readable, _, _ = select.select([self.signal_fd], [], [], POLL_S)
+            readable, _, _ = select.select([self.signal_fd, self._quit_r], [], [], self._timeout_s())
+            self.wakeups += 1
             if self._quit.is_set():
                 return
-            if readable:
+            if self.signal_fd in readable:
                 try:
                     data = os.read(self.signal_fd, 64)
                 except (BlockingIOError, InterruptedError):
@@ -100,6 +115,16 @@ class StopGuard(threading.Thread):
                     and time.monotonic() - last > self.stall_s):
                 self._emergency(f"the loop has not turned for {time.monotonic() - last:.2f} s", EXIT_STALLED)
                 return
+
+    def _timeout_s(self) -> float | None:
+        """Until a stall would be due (the loop's last pass + stall_s); None (a signal or quit) without
+        stall watching or once the loop's own stop began, POLL_S before the first pass."""
+        if self.stall_s <= 0.0 or self._stopping.is_set():
+            return None
+        last = self._last_pass_s
+        if last is None:
+            return POLL_S
+        return max(0.0, last + self.stall_s - time.monotonic()) + 1e-3  # just past it: no early wake-up
 
     def _on_signal(self, signum: int) -> None:
         _poke(self.wake_fd)  # the loop's select wakes at once
