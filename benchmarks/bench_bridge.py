@@ -7,6 +7,7 @@ Subcommands (each prints a table and finishes in under 2 minutes; `all` runs the
   throughput   autopilot telemetry flood routed to a GCS: highest zero-loss rate, next to raw parse_buffer
   cpu          CPU % of one core at nominal load (50 Hz wheels / IMU / control, 30 Hz ODOMETRY), next to a
                plain pymavlink router; --parts: also the bridge with its cores stubbed (where the CPU goes)
+  wakeup       CPU of a Python process that only wakes from select() (what a pass costs before any work)
   regularity   override period jitter at command.rate_hz = 50, quiet and under a 5000 msg/s GCS flood
   memory       RSS over one million messages (in-process Runner + BridgeCore; --subprocess: the real process)
   startup      process start -> first HEARTBEAT sent; import-time breakdown
@@ -29,6 +30,7 @@ harness's own wake-up delay is not charged to the bridge (nor to the echo).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import math
@@ -1339,6 +1341,42 @@ def bench_hotpath(args: argparse.Namespace) -> None:
                 f"throughput mix, in-process", ["what", "median_us", "min_us", "rate_vs_raw_parse"], rows)
 
 
+# ------------------------------------------------------------------------------------- wake-up cost
+
+def bench_wakeup(args: argparse.Namespace) -> None:
+    """What one wake-up costs before any work: this process sleeps in select() on a timer at the rate of
+    the bridge's passes at nominal load and, per wake-up, does nothing or tries a non-blocking read on
+    two idle sockets (what a pass does on links with nothing more to read)."""
+    socks = [udp_socket() for _ in range(2)]
+    for sock in socks:
+        sock.setblocking(False)
+    rows = []
+    try:
+        for reads in (0, 2):
+            wakes = 0
+            period = 1.0 / args.rate_hz
+            cpu0, start = time.process_time(), time.monotonic()
+            deadline = start
+            while (now := time.monotonic()) < start + args.seconds:
+                deadline += period
+                if deadline > now:
+                    select.select(socks[:1], [], [], deadline - now)
+                wakes += 1
+                for sock in socks[:reads]:
+                    with contextlib.suppress(BlockingIOError):
+                        sock.recv(4096)
+            cpu_s = time.process_time() - cpu0
+            wall_s = time.monotonic() - start
+            rows.append([f"{args.rate_hz:.0f}", reads, wakes, f"{cpu_s / wakes * 1e6:.0f}",
+                         f"{cpu_s / wall_s * 100.0:.2f}"])
+    finally:
+        for sock in socks:
+            sock.close()
+    print_table("7. The cost of a wake-up: a Python process that only sleeps in select() on a timer (CPU time, "
+                "user + system)", ["wakeups_per_s", "reads_per_wakeup", "wakeups", "cpu_us_per_wakeup",
+                                   "cpu_%_core"], rows)
+
+
 # ------------------------------------------------------------------------------------- CLI
 
 def main(argv: list[str] | None = None) -> None:
@@ -1374,6 +1412,10 @@ def main(argv: list[str] | None = None) -> None:
     p = sub.add_parser("startup")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--top", type=int, default=10)
+    p = sub.add_parser("wakeup")
+    p.add_argument("--rate-hz", type=float, default=110.0, help="wake-ups a second (the bridge's passes at nominal "
+                   "load: about 110)")
+    p.add_argument("--seconds", type=float, default=10.0)
     p = sub.add_parser("hotpath")
     p.add_argument("--repeats", type=int, default=15)
     p.add_argument("--batch", type=int, default=1500)
@@ -1400,11 +1442,12 @@ def main(argv: list[str] | None = None) -> None:
         flood_main(args.port, args.rate, args.seconds)
     elif args.cmd == "all":
         with_base = ("hotpath", "latency", "throughput", "cpu", "regularity")
-        for name in ("hotpath", "latency", "throughput", "cpu", "regularity", "memory", "startup"):
+        for name in ("hotpath", "latency", "throughput", "cpu", "wakeup", "regularity", "memory", "startup"):
             main([name, "--base", args.base] if args.base and name in with_base else [name])
     else:
         {"latency": bench_latency, "throughput": bench_throughput, "cpu": bench_cpu, "regularity": bench_regularity,
-         "memory": bench_memory, "startup": bench_startup, "hotpath": bench_hotpath}[args.cmd](args)
+         "memory": bench_memory, "startup": bench_startup, "hotpath": bench_hotpath,
+         "wakeup": bench_wakeup}[args.cmd](args)
 
 
 if __name__ == "__main__":
