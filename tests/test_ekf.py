@@ -1,7 +1,7 @@
 """EKF models: Jacobians against finite differences, hand-derived motion cases, gating, slip."""
 
 # Kalman-filter notation (P, H, R, S, K) reads better than pep8 names here.
-# ruff: noqa: N806
+# ruff: noqa: N803, N806
 
 from __future__ import annotations
 
@@ -29,6 +29,7 @@ from rover_bridge.estimate.ekf import (
     fx,
     hx_gyro,
     hx_wheels,
+    wheel_measurement,
     wheel_noise,
 )
 from rover_bridge.odometry import Pose2D, arc_factors
@@ -196,39 +197,86 @@ def _filter_at_random_state(rng: np.random.Generator, calibrate: bool) -> tuple[
     return ekf, x, P
 
 
-@pytest.mark.parametrize("seed", range(5))
-def test_update_with_calibration_equals_filterpys_ekf_update(seed: int) -> None:
-    """With nothing considered, the fast update is the textbook EKF update: filterpy's."""
+def _filterpy_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, hx: np.ndarray,
+                     R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     from filterpy.kalman import ExtendedKalmanFilter
 
-    rng = np.random.default_rng(seed)
-    ekf, x, P = _filter_at_random_state(rng, calibrate=True)
-    ref = ExtendedKalmanFilter(dim_x=N_CAL, dim_z=2)
+    ref = ExtendedKalmanFilter(dim_x=N_CAL, dim_z=z.shape[0])
     ref.x, ref.P = x.copy(), P.copy()
-    H, hx = H_wheels(x, L), hx_wheels(x, L)
-    z = hx + rng.normal(0.0, 0.05, 2)
-    R = wheel_noise(0.02, 0.025, 0.05, L, NoiseModel())
-    ekf._update(z - hx, H, H @ P @ H.T + R)
     ref.update(z, lambda _x: H, lambda _x: hx, R=R)
     ref.x[IYAW] = math.remainder(float(ref.x[IYAW]), 2.0 * math.pi)
-    np.testing.assert_allclose(ekf.x, ref.x, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(ekf.P, ref.P, rtol=1e-7, atol=1e-12)
+    return ref.x, ref.P
 
 
-@pytest.mark.parametrize("seed", range(5))
-def test_consider_update_equals_the_joseph_form_with_zero_gain_rows(seed: int) -> None:
-    ekf, x, P = _filter_at_random_state(np.random.default_rng(seed), calibrate=False)
-    H = H_gyro(x)
-    R = np.array([[0.005**2]])
-    y = np.array([0.03])
+def _joseph_consider(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, hx: np.ndarray,
+                     R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Schmidt-Kalman update in matrix form: the gain rows of the geometry states zeroed, Joseph's P."""
     S = H @ P @ H.T + R
-    ekf._update(y, H, S)
     K = P @ H.T @ np.linalg.inv(S)
     K[[IKT, IKR], :] = 0.0
     I_KH = np.eye(N_CAL) - K @ H
-    np.testing.assert_allclose(ekf.x, x + K @ y, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(ekf.P, I_KH @ P @ I_KH.T + K @ R @ K.T, rtol=1e-7, atol=1e-12)
-    assert ekf.x[IKT] == x[IKT] and ekf.x[IKR] == x[IKR]  # considered: never moved
+    return x + K @ (z - hx), I_KH @ P @ I_KH.T + K @ R @ K.T
+
+
+@pytest.mark.parametrize("calibrate", [False, True])
+@pytest.mark.parametrize("seed", range(10))
+def test_the_float_wheel_update_is_the_matrix_update(seed: int, calibrate: bool) -> None:
+    """update_wheels in floats (P H' from H's four nonzero columns, S, the masked gain, Joseph's P) is
+    filterpy's ExtendedKalmanFilter.update with hx_wheels, H_wheels and wheel_noise when nothing is
+    considered, the zero-gain-row Joseph form when the geometry is; then the distance correction."""
+    rng = np.random.default_rng(seed)
+    ekf, x, P = _filter_at_random_state(rng, calibrate)
+    ekf.predict_to(1.0)  # the filter's time: no prediction in the update below
+    H, hx = H_wheels(x, L), hx_wheels(x, L)
+    dl, dr, dt = hx[0] * 0.05 - 0.5 * hx[1] * L * 0.05, hx[0] * 0.05 + 0.5 * hx[1] * L * 0.05, 0.05
+    dl, dr = dl + rng.normal(0.0, 0.002), dr + rng.normal(0.0, 0.002)
+    z = wheel_measurement(dl, dr, dt, L)
+    R = wheel_noise(dl, dr, dt, L, NoiseModel())
+    res = ekf.update_wheels(1.0, dl, dr, dt)
+    assert res.accepted and not res.slip
+    x_ref, p_ref = (_filterpy_update if calibrate else _joseph_consider)(x, P, z, H, hx, R)
+    q = x_ref[IKR]
+    missed = 0.5 * (2.0 / (1.0 + q) * dl + 2.0 * q / (1.0 + q) * dr)  # nothing predicted since the last reading
+    x_ref[IX] += math.cos(x_ref[IYAW]) * missed
+    x_ref[IY] += math.sin(x_ref[IYAW]) * missed
+    np.testing.assert_allclose(ekf.x, x_ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ekf.P, p_ref, rtol=1e-7, atol=1e-12)
+    assert np.array_equal(ekf.P, ekf.P.T)  # exactly symmetric
+    if not calibrate:
+        assert ekf.x[IKT] == x[IKT] and ekf.x[IKR] == x[IKR]  # considered: never moved
+
+
+@pytest.mark.parametrize("calibrate", [False, True])
+@pytest.mark.parametrize("seed", range(10))
+def test_the_float_gyro_update_is_the_matrix_update(seed: int, calibrate: bool) -> None:
+    rng = np.random.default_rng(seed)
+    ekf, x, P = _filter_at_random_state(rng, calibrate)
+    ekf.predict_to(1.0)
+    H, hx = H_gyro(x), hx_gyro(x)
+    z = hx + 0.003
+    R = np.array([[ekf._gyro_var]])
+    assert ekf.update_gyro(1.0, float(z[0]))
+    x_ref, p_ref = (_filterpy_update if calibrate else _joseph_consider)(x, P, z, H, hx, R)
+    np.testing.assert_allclose(ekf.x, x_ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ekf.P, p_ref, rtol=1e-7, atol=1e-12)
+    assert np.array_equal(ekf.P, ekf.P.T)
+    if not calibrate:
+        assert ekf.x[IKT] == x[IKT] and ekf.x[IKR] == x[IKR]
+
+
+def test_the_arrays_are_filterpys_and_updated_in_place() -> None:
+    # filterpy's filter holds the state: the float arithmetic writes into its arrays, it never rebinds them.
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    ekf = WheelGyroEKF(L)
+    assert isinstance(ekf.ekf, ExtendedKalmanFilter)
+    x_arr, p_arr = ekf.ekf.x, ekf.ekf.P
+    before = p_arr.copy()
+    ekf.update_gyro(0.01, 0.2)
+    ekf.update_wheels(0.02, 0.004, 0.0045, 0.01, 0.2)
+    ekf.predict_to(0.05)
+    assert ekf.ekf.x is x_arr and ekf.ekf.P is p_arr
+    assert not np.array_equal(p_arr, before) and x_arr[IW] > 0.0
 
 
 def test_a_filter_built_while_filterpy_loads_in_the_background_moves_into_it_unchanged(
@@ -265,8 +313,10 @@ def _random_filter(seed: int, calibrate: bool) -> WheelGyroEKF:
 
 @pytest.mark.parametrize("calibrate", [False, True])
 @pytest.mark.parametrize("seed", range(20))
-def test_the_fused_prediction_step_is_fx_f_jacobian_and_q_exactly(seed: int, calibrate: bool) -> None:
-    # predict_to writes fx, F_jacobian and process_noise_diagonal out in one pass; bit for bit the same.
+def test_the_float_prediction_step_is_fx_f_jacobian_and_q(seed: int, calibrate: bool) -> None:
+    # predict_to writes fx, F_jacobian and process_noise_diagonal out in floats, touching only the rows and
+    # columns F changes: x bit for bit, P to rounding (the products are summed in another order) and
+    # exactly symmetric.
     from rover_bridge.estimate.ekf import process_noise_diagonal
 
     f = _random_filter(seed, calibrate)
@@ -275,17 +325,25 @@ def test_the_fused_prediction_step_is_fx_f_jacobian_and_q_exactly(seed: int, cal
     F = F_jacobian(x0, 0.037)
     p_ref = F @ p0 @ F.T
     p_ref.flat[:: N_CAL + 1] += process_noise_diagonal(x0, 0.037)
-    assert np.array_equal(f.x, fx(x0, 0.037)) and np.array_equal(f.P, p_ref)
+    assert np.array_equal(f.x, fx(x0, 0.037))
+    np.testing.assert_allclose(f.P, p_ref, rtol=1e-12, atol=1e-15)
+    assert np.array_equal(f.P, f.P.T)
 
 
-@pytest.mark.parametrize("calibrate", [False, True])
-@pytest.mark.parametrize("seed", range(20))
-def test_the_gyro_update_in_vectors_is_the_matrix_update_exactly(seed: int, calibrate: bool) -> None:
-    a, b = _random_filter(seed, calibrate), _random_filter(seed, calibrate)
-    y, S, _ = a._gyro_innovation(0.3)
-    a._update_gyro(y, S)
-    b._update(np.array([y]), H_gyro(b.x), np.array([[S]]))
-    assert np.array_equal(a.x, b.x) and np.array_equal(a.P, b.P)
+@pytest.mark.parametrize("seed", range(10))
+def test_extrapolation_is_the_matrix_form(seed: int) -> None:
+    from rover_bridge.estimate.ekf import EXTRAPOLATE_MAX_S, MAX_PREDICT_STEP_S, process_noise
+
+    f = _random_filter(seed, calibrate=False)
+    x0, p0 = f.x.copy(), f.P.copy()
+    for dt in (0.0, 0.013, 0.35):
+        x, rows = f.extrapolate(dt)
+        moved = min(dt, EXTRAPOLATE_MAX_S)
+        F = F_jacobian(x0, moved)
+        p_ref = F @ p0 @ F.T + process_noise(x0, dt) * max(1.0, dt / MAX_PREDICT_STEP_S)
+        np.testing.assert_allclose(x, fx(x0, moved), rtol=0, atol=0)
+        np.testing.assert_allclose(np.array(rows), p_ref, rtol=1e-12, atol=1e-15)
+    assert np.array_equal(f.x, x0) and np.array_equal(f.P, p0)  # the filter did not move
 
 
 @pytest.mark.parametrize("calibrate", [False, True])
@@ -302,4 +360,4 @@ def test_the_slip_distance_in_floats_is_the_one_from_hx_and_h(seed: int, calibra
     g = hg[IKT:]
     var += float(g @ f.P[IKT:, IKT:] @ g)
     ref = (float(z[1]) - float(hx_wheels(xg, L)[1])) ** 2 / var
-    assert f.slip_d2(z, R, gyro, spread) == ref
+    assert f.slip_d2(float(z[1]), float(R[1, 1]), gyro, spread) == pytest.approx(ref, rel=1e-13)

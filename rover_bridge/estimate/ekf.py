@@ -42,7 +42,11 @@ computed differently either way: only x and P of that object are used.
 from __future__ import annotations
 
 import math
+import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import repeat
+from operator import add, mul, sub
 from typing import Any
 
 import numpy as np
@@ -52,6 +56,8 @@ from rover_bridge.odometry import Pose2D, arc_factors, wrap_angle
 
 Vec = npt.NDArray[np.float64]
 Mat = npt.NDArray[np.float64]
+Floats = Sequence[float]
+Rows = Sequence[Sequence[float]] | Mat  # a matrix as rows: a nested list, or an array (both index [i][j])
 
 IX, IY, IYAW, IV, IW, IB, IKT, IKR = range(8)
 N_CAL = 8
@@ -155,13 +161,13 @@ def F_jacobian(x: Vec, dt_s: float, out: Mat | None = None) -> Mat:
     return F
 
 
-def process_noise_diagonal(x: Vec, dt_s: float) -> list[float]:
+def process_noise_diagonal(x: Vec | Floats, dt_s: float) -> list[float]:
     """The diagonal of Q for one step (Q has nothing off the diagonal)."""
     dist_m = abs(float(x[IV])) * dt_s
     turn_rad = abs(float(x[IW])) * dt_s
     pos = Q_POS_PER_M * dist_m
     q = [pos, pos, Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad, Q_V * dt_s, Q_OMEGA * dt_s, Q_BIAS * dt_s]
-    if x.shape[0] == N_CAL:
+    if len(x) == N_CAL:
         q += [Q_CAL * dt_s, Q_CAL * dt_s]
     return q
 
@@ -171,19 +177,20 @@ def process_noise(x: Vec, dt_s: float) -> Mat:
     return np.diag(process_noise_diagonal(x, dt_s))
 
 
-def _geometry(x: Vec) -> tuple[float, float]:
+def _geometry(x: Vec | Floats) -> tuple[float, float]:
     """(track_scale, radius_ratio); nominal (1, 1) without calibration states."""
-    if x.shape[0] == N_CAL:
+    if len(x) == N_CAL:
         return float(x[IKT]), float(x[IKR])
     return 1.0, 1.0
 
 
-def wheel_speeds_from_state(x: Vec, track_width_m: float) -> tuple[float, float]:
+def wheel_speeds_from_state(x: Vec | Floats, track_width_m: float) -> tuple[float, float]:
     """Nominal-geometry wheel surface speeds (left, right) the state predicts."""
     kt, q = _geometry(x)
     sl, sr = 2.0 / (1.0 + q), 2.0 * q / (1.0 + q)
-    half = 0.5 * track_width_m * kt * x[IW]
-    return (x[IV] - half) / sl, (x[IV] + half) / sr
+    v, w = float(x[IV]), float(x[IW])
+    half = 0.5 * track_width_m * kt * w
+    return (v - half) / sl, (v + half) / sr
 
 
 def hx_wheels(x: Vec, track_width_m: float) -> Vec:
@@ -192,9 +199,9 @@ def hx_wheels(x: Vec, track_width_m: float) -> Vec:
     return np.array([0.5 * (ul + ur), (ur - ul) / track_width_m])
 
 
-def H_wheels(x: Vec, track_width_m: float) -> Mat:
-    """d hx_wheels / d x (in floats, then one array: it runs for every wheel reading)."""
-    n = x.shape[0]
+def _wheel_rows(x: Vec | Floats, track_width_m: float) -> tuple[list[float], list[float]]:
+    """The two rows of H_wheels as floats (the filter's form)."""
+    n = len(x)
     kt, q = _geometry(x)
     L = track_width_m
     sl, sr = 2.0 / (1.0 + q), 2.0 * q / (1.0 + q)
@@ -211,7 +218,12 @@ def H_wheels(x: Vec, track_width_m: float) -> Mat:
         dur_kr = -(v + 0.5 * L * kt * w) / (sr * sr) * dsr
         row_v += [0.5 * (dul_kt + dur_kt), 0.5 * (dul_kr + dur_kr)]
         row_w += [(dur_kt - dul_kt) / L, (dur_kr - dul_kr) / L]
-    return np.array([row_v, row_w])
+    return row_v, row_w
+
+
+def H_wheels(x: Vec, track_width_m: float) -> Mat:
+    """d hx_wheels / d x."""
+    return np.array(_wheel_rows(x, track_width_m))
 
 
 def hx_gyro(x: Vec) -> Vec:
@@ -224,21 +236,31 @@ def H_gyro(x: Vec) -> Mat:
     return H
 
 
+def _wheel_z(d_left_m: float, d_right_m: float, dt_s: float, track_width_m: float) -> tuple[float, float]:
+    ul, ur = d_left_m / dt_s, d_right_m / dt_s
+    return 0.5 * (ul + ur), (ur - ul) / track_width_m
+
+
 def wheel_measurement(d_left_m: float, d_right_m: float, dt_s: float, track_width_m: float) -> Vec:
     """z_wheels from the nominal wheel distance increments over dt_s."""
-    ul, ur = d_left_m / dt_s, d_right_m / dt_s
-    return np.array([0.5 * (ul + ur), (ur - ul) / track_width_m])
+    return np.array(_wheel_z(d_left_m, d_right_m, dt_s, track_width_m))
+
+
+def _wheel_r(d_left_m: float, d_right_m: float, dt_s: float, track_width_m: float,
+             noise: NoiseModel) -> tuple[float, float, float]:
+    """(R00, R01, R11) of wheel_noise."""
+    base = (math.sqrt(2.0) * noise.wheel_noise_m / dt_s) ** 2  # two readings per increment
+    vl = base + (noise.wheel_noise_fraction * d_left_m / dt_s) ** 2
+    vr = base + (noise.wheel_noise_fraction * d_right_m / dt_s) ** 2
+    L = track_width_m
+    return 0.25 * (vl + vr), 0.5 * (vr - vl) / L, (vl + vr) / (L * L)
 
 
 def wheel_noise(d_left_m: float, d_right_m: float, dt_s: float, track_width_m: float,
                 noise: NoiseModel) -> Mat:
     """R of z_wheels: per-wheel speed variance (reading noise / dt and a fraction of the speed)."""
-    base = (math.sqrt(2.0) * noise.wheel_noise_m / dt_s) ** 2  # two readings per increment
-    vl = base + (noise.wheel_noise_fraction * d_left_m / dt_s) ** 2
-    vr = base + (noise.wheel_noise_fraction * d_right_m / dt_s) ** 2
-    L = track_width_m
-    return np.array([[0.25 * (vl + vr), 0.5 * (vr - vl) / L],
-                     [0.5 * (vr - vl) / L, (vl + vr) / (L * L)]])
+    r00, r01, r11 = _wheel_r(d_left_m, d_right_m, dt_s, track_width_m, noise)
+    return np.array([[r00, r01], [r01, r11]])
 
 
 # ---------------------------------------------------------------- the filter
@@ -272,6 +294,41 @@ class _Holder:
         self.P: Mat = np.zeros((0, 0))
 
 
+# The filter's arithmetic runs in floats on the buffers of filterpy's x and P (class docstring).
+_XS = struct.Struct(f"{N_CAL}d")
+_PS = struct.Struct(f"{N_CAL * N_CAL}d")
+
+
+def _propagate(x: list[float], p: list[float], dt_s: float, q: Floats) -> None:
+    """x = fx(x, dt_s) and P = F P F' + diag(q), in place, p the row-major 8 x 8 covariance.
+
+    F is the identity but for 7 entries (F_jacobian), so F P changes the rows x, y, yaw only and
+    (F P) F' their columns only: about 60 products instead of two 8 x 8 matrix products. The block
+    of x, y, yaw is taken from its upper triangle and the columns from the rows, so P stays exactly
+    symmetric."""
+    x[IX], x[IY], x[IYAW], f02, f12, f03, f13, f04, f14 = _motion_step(x[IX], x[IY], x[IYAW], x[IV], x[IW], dt_s)
+    r2, r3, r4 = p[16:24], p[24:32], p[32:40]
+    t0 = [a + f02 * b + f03 * c + f04 * d for a, b, c, d in zip(p[0:8], r2, r3, r4, strict=True)]
+    t1 = [a + f12 * b + f13 * c + f14 * d for a, b, c, d in zip(p[8:16], r2, r3, r4, strict=True)]
+    t2 = [b + dt_s * d for b, d in zip(r2, r4, strict=True)]
+    n01 = t0[1] + f12 * t0[2] + f13 * t0[3] + f14 * t0[4]
+    n02 = t0[2] + dt_s * t0[4]
+    n12 = t1[2] + dt_s * t1[4]
+    t0[0] += f02 * t0[2] + f03 * t0[3] + f04 * t0[4] + q[0]
+    t1[1] += f12 * t1[2] + f13 * t1[3] + f14 * t1[4] + q[1]
+    t2[2] += dt_s * t2[4] + q[2]
+    t0[1], t0[2], t1[0], t1[2], t2[0], t2[1] = n01, n02, n01, n12, n02, n12
+    p[0:8], p[8:16], p[16:24] = t0, t1, t2
+    for i in range(3, N_CAL):
+        k = N_CAL * i
+        p[k], p[k + 1], p[k + 2] = t0[i], t1[i], t2[i]
+        p[k + i] += q[i]
+
+
+def _rows(p: Floats) -> list[list[float]]:
+    return [list(p[i:i + N_CAL]) for i in range(0, N_CAL * N_CAL, N_CAL)]
+
+
 @dataclass(frozen=True, slots=True)
 class WheelUpdate:
     """What happened to one wheel measurement."""
@@ -289,6 +346,14 @@ class WheelGyroEKF:
     Time is an argument everywhere (`t_s`, any monotonic time line); the filter keeps the time of
     its state and never moves backwards: a measurement older than the state is applied at the
     state's time (a few ms of skew between streams is far below what the model resolves).
+
+    filterpy's filter holds the state: `ekf.x` (8) and `ekf.P` (8 x 8) are its two arrays, current
+    after every call. The arithmetic of the running filter reads them into floats, computes in
+    floats and writes them back, in place (one struct call each way): inside the running bridge a
+    prediction and an update in numpy cost several times their tight-loop time (each numpy call
+    runs cold code after a wake-up), and floats run in the interpreter loop the rest of the pass
+    uses anyway. The matrix forms (fx, F_jacobian, hx_*, H_*, filterpy's update) are the reference
+    the float forms are tested against. So the arrays are live: copy them to keep a snapshot.
     """
 
     def __init__(self, track_width_m: float, noise: NoiseModel | None = None, calibrate: bool = False,
@@ -311,10 +376,10 @@ class WheelGyroEKF:
         self._wheels_prev: tuple[float, float] | None = None  # (time, v after that update)
         self._moved_since_wheels_m = 0.0
         self._gyro_var = self.noise.gyro_noise_rad_s ** 2
-        self._F = np.eye(n)  # reused by every prediction step (it always writes the same entries)
-        self._q = np.zeros(n)  # the diagonal of Q, likewise
-        self._estimated = np.ones(n)  # 1 for estimated states, 0 for considered ones: masks the gain
-        self._estimated[self._consider] = 0.0
+        # 1 for estimated states, 0 for considered ones: masks the gain.
+        self._mask = [0.0 if i in self._consider else 1.0 for i in range(n)]
+        # Entries of P between two considered states: no update changes them (see _fuse).
+        self._fixed = [n * i + j for i in self._consider for j in self._consider]
         self._gate2 = self.noise.gate_sigma ** 2
         self.rejects_in_row = {"wheels": 0, "gyro": 0}
         self.predict_steps = 0  # prediction sub-steps so far: the work the filter did (bounded per call)
@@ -337,6 +402,15 @@ class WheelGyroEKF:
         ekf.x, ekf.P = held.x, held.P
         self.ekf, self._held = ekf, False
 
+    def _load(self) -> tuple[list[float], list[float]]:
+        """x and P (row-major) as floats."""
+        return list(_XS.unpack_from(self.ekf.x)), list(_PS.unpack_from(self.ekf.P))
+
+    def _store(self, x: Floats, p: Floats) -> None:
+        """Write x and P back into filterpy's arrays, in place."""
+        _XS.pack_into(self.ekf.x, 0, *x)
+        _PS.pack_into(self.ekf.P, 0, *p)
+
     # -- accessors
     @property
     def x(self) -> Vec:
@@ -348,68 +422,56 @@ class WheelGyroEKF:
 
     @property
     def pose(self) -> Pose2D:
-        x = self.ekf.x
-        return Pose2D(float(x[IX]), float(x[IY]), float(x[IYAW]))
+        x, y, yaw = _XS.unpack_from(self.ekf.x)[:3]
+        return Pose2D(x, y, yaw)
 
     # -- time
     def predict_to(self, t_s: float) -> None:
         """Move the state to t_s. Work is bounded whatever t_s is: a gap longer than MAX_PREDICT_GAP_S
         is a discontinuity (the motion restarts from the held pose, as after a silent link), never
         integrated step by step; a time that is not finite is ignored."""
-        if not math.isfinite(t_s):
-            return
+        self._store(*self._predicted(t_s))
+
+    def _predicted(self, t_s: float) -> tuple[list[float], list[float]]:
+        """predict_to(t_s) as floats: the caller stores them (or changes them first)."""
         if self._held and _FILTER_CLASS is not None:
             self._adopt(_FILTER_CLASS)
+        if not math.isfinite(t_s):
+            return self._load()
         if self.time_s is None:
             self.time_s = t_s
-            return
+            return self._load()
         total = t_s - self.time_s
         if total <= 0.0:
-            return
+            return self._load()
         if total > MAX_PREDICT_GAP_S:
             self.restart_motion(t_s)
-            return
+            return self._load()
         # Sub-steps through a gap, so the covariance grows as the random walks really do (one long
         # step would add the speed noise to the speed only, not to the position it moves).
         steps = max(1, math.ceil(total / MAX_PREDICT_STEP_S))
         dt = total / steps
-        q = self._q
-        q[IV], q[IW], q[IB] = Q_V * dt, Q_OMEGA * dt, Q_BIAS * dt
-        if self.n == N_CAL:
-            q[IKT] = q[IKR] = Q_CAL * dt
-        ekf = self.ekf
         self.predict_steps += steps
-        F = self._F
+        x, p = self._load()
         for _ in range(steps):
-            # fx, F_jacobian and process_noise_diagonal in one pass over _motion_step (this runs for every
-            # measurement), in the same arithmetic: tests hold it to the three functions.
-            x = ekf.x
-            yaw, v, w = float(x[IYAW]), float(x[IV]), float(x[IW])
-            step = _motion_step(float(x[IX]), float(x[IY]), yaw, v, w, dt)
-            _write_jacobian(F, step, dt)
-            P = F @ ekf.P @ F.T
-            dist_m, turn_rad = abs(v) * dt, abs(w) * dt
-            q[IX] = q[IY] = Q_POS_PER_M * dist_m
-            q[IYAW] = Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad
-            P.flat[:: self.n + 1] += q  # Q is diagonal; the rest of q is constant per dt (set above)
-            out = x.copy()
-            out[IX], out[IY], out[IYAW] = step[:3]
-            ekf.x, ekf.P = out, P
+            v, w = x[IV], x[IW]
+            _propagate(x, p, dt, process_noise_diagonal(x, dt))
             self._turned_since_gyro_rad += w * dt
             self._moved_since_wheels_m += v * dt
         self.time_s = t_s
+        return x, p
 
-    def extrapolate(self, t_s: float) -> tuple[Vec, Mat]:
-        """State and covariance predicted to t_s, without changing the filter (for publishing)."""
-        x, P = self.ekf.x, self.ekf.P
+    def extrapolate(self, t_s: float) -> tuple[list[float], list[list[float]]]:
+        """State and covariance (as rows) predicted to t_s, without changing the filter (for publishing)."""
+        x, p = self._load()
         if self.time_s is None or t_s <= self.time_s:
-            return x.copy(), P.copy()
+            return x, _rows(p)
         dt = t_s - self.time_s
         # The pose moves on for at most EXTRAPOLATE_MAX_S past the last measurement (a silent link
         # may be a rebooting autopilot whose motors stopped); the covariance keeps growing.
-        moved = min(dt, EXTRAPOLATE_MAX_S)
-        F = F_jacobian(x, moved)
-        return fx(x, moved), F @ P @ F.T + process_noise(x, dt) * max(1.0, dt / MAX_PREDICT_STEP_S)
+        scale = max(1.0, dt / MAX_PREDICT_STEP_S)
+        _propagate(x, p, min(dt, EXTRAPOLATE_MAX_S), [q * scale for q in process_noise_diagonal(x, dt)])
+        return x, _rows(p)
 
     def restart_motion(self, t_s: float, new_time_s: float | None = None) -> None:
         """After an autopilot reboot: continue from the pose published now, speeds unknown near zero.
@@ -419,7 +481,8 @@ class WheelGyroEKF:
         distance and the speeds restart at zero with their initial uncertainty.
         """
         held_m = float(self.ekf.x[IV]) * min(max(0.0, t_s - (self.time_s or t_s)), EXTRAPOLATE_MAX_S)
-        x, P = self.extrapolate(t_s)
+        xs, rows = self.extrapolate(t_s)
+        x, P = np.array(xs), np.array(rows)
         coast_m = abs(float(x[IV])) * COAST_S
         coast_rad = abs(float(x[IW])) * COAST_S
         x[IV] = x[IW] = 0.0
@@ -430,7 +493,7 @@ class WheelGyroEKF:
         P[IX, IX] += coast_m**2
         P[IY, IY] += coast_m**2
         P[IYAW, IYAW] += coast_rad**2
-        self.ekf.x, self.ekf.P = x, P
+        self._store(x.tolist(), P.ravel().tolist())
         # The held pose is at t_s; the filter's clock goes on from new_time_s (an autopilot that
         # rebooted restarts its boot clock near zero).
         self.time_s = t_s if new_time_s is None else new_time_s
@@ -453,8 +516,11 @@ class WheelGyroEKF:
         self.rejects_in_row[sensor] += 1
         return False
 
-    def _update(self, y: Vec, H: Mat, S: Mat) -> None:
-        """EKF update with innovation y = z - h(x) and its covariance S = H P H' + R.
+    def _fuse(self, x: list[float], p: list[float], a: Floats, e0: float, b: Floats | None = None,
+              e1: float = 0.0) -> tuple[list[float], list[float]]:
+        """EKF update of (x, P) in floats, for a measurement of one or two rows given in whitened form:
+        with S = H P H' + R = C C' (C lower triangular, Cholesky), the columns [a b] of P H' C^-T and
+        e = C^-1 y (y the innovation); for one row, a = P H' / sqrt(S), e0 = y / sqrt(S) and no b.
 
         Without calibration the geometry states are *consider* states (Schmidt-Kalman): their gain
         rows are zero, so they stay at nominal, but their uncertainty still weighs every update - a
@@ -463,95 +529,99 @@ class WheelGyroEKF:
         0.05 rad/s of bias). With calibration nothing is considered and this is the textbook update
         (tests check it against filterpy's ExtendedKalmanFilter.update).
 
-        The covariance uses the form that is exact for any gain (Joseph's, expanded):
-        P - K H P - P H' K' + K S K', written as P - A - A' with A = K (P H' - K S / 2)'. Closed-form
-        inverses of the 1x1 and 2x2 S: numpy's generic inverse costs more than the rest together.
-        """
-        ekf = self.ekf
-        P = ekf.P
-        PHT = P @ H.T
-        if S.shape[0] == 1:
-            K = PHT * (1.0 / float(S[0, 0]))
+        The gain is K = M P H' S^-1 (M the 0/1 mask of estimated states), so x moves by
+        M [a b] e. The covariance is Joseph's form, exact for any gain: with G = P H' S^-1 H P =
+        a a' + b b', P - K H P - P H' K' + K S K' is P - (M G + G M - M G M): G everywhere but
+        between two considered states, where P stays. The upper triangle is computed and mirrored, so P
+        stays exactly symmetric."""
+        m = self._mask
+        n = self.n
+        out = p.copy()
+        # Row i from the diagonal on, and its mirror, column i below the diagonal (in C: map and slices).
+        if b is None:
+            x = [xi + mi * ai * e0 for xi, mi, ai in zip(x, m, a, strict=True)]
+            for i in range(n):
+                k = n * i + i
+                row = list(map(sub, p[k:n * (i + 1)], map(mul, repeat(a[i]), a[i:])))
+                out[k:n * (i + 1)] = row
+                out[k + n::n] = row[1:]
         else:
-            a, b, c, d = float(S[0, 0]), float(S[0, 1]), float(S[1, 0]), float(S[1, 1])
-            det = a * d - b * c
-            K = PHT @ np.array([[d / det, -b / det], [-c / det, a / det]])
-        if self._consider:
-            K *= self._estimated[:, None]
-        ekf.x = ekf.x + K @ y
-        A = K @ (PHT - 0.5 * (K @ S)).T
-        ekf.P = P - A - A.T
-        ekf.x[IYAW] = wrap_angle(float(ekf.x[IYAW]))
-
-    def _update_gyro(self, y: float, S: float) -> None:
-        """_update for the gyro's H (omega + bias: two ones), in vectors: P H' is the sum of two columns,
-        the gain a vector, A an outer product; the same arithmetic as the matrix form (tests hold it)."""
-        ekf = self.ekf
-        P = ekf.P
-        PHT = P[:, IW] + P[:, IB]
-        K = PHT * (1.0 / S)
-        if self._consider:
-            K *= self._estimated
-        ekf.x = ekf.x + K * y
-        A = np.outer(K, PHT - 0.5 * (K * S))
-        ekf.P = P - A - A.T
-        ekf.x[IYAW] = wrap_angle(float(ekf.x[IYAW]))
+            x = [xi + mi * (ai * e0 + bi * e1) for xi, mi, ai, bi in zip(x, m, a, b, strict=True)]
+            for i in range(n):
+                k = n * i + i
+                row = list(map(sub, p[k:n * (i + 1)], map(add, map(mul, repeat(a[i]), a[i:]),
+                                                           map(mul, repeat(b[i]), b[i:]))))
+                out[k:n * (i + 1)] = row
+                out[k + n::n] = row[1:]
+        for k in self._fixed:
+            out[k] = p[k]
+        x[IYAW] = wrap_angle(x[IYAW])
+        return x, out
 
     def gyro_innovation_d2(self, omega_rad_s: float) -> float:
-        return self._gyro_innovation(omega_rad_s)[2]
+        x, p = self._load()
+        return self._gyro_innovation(x, p, omega_rad_s)[2]
 
-    def _gyro_innovation(self, omega_rad_s: float) -> tuple[float, float, float]:
+    def _gyro_innovation(self, x: Floats, p: Floats, omega_rad_s: float) -> tuple[float, float, float]:
         """(y, S, d2) of a gyro sample: H = d(omega + bias)/dx picks two states, so all of it is scalar."""
-        x, P = self.ekf.x, self.ekf.P
-        y = omega_rad_s - (float(x[IW]) + float(x[IB]))
-        S = float(P[IW, IW]) + 2.0 * float(P[IW, IB]) + float(P[IB, IB]) + self._gyro_var
+        n = self.n
+        y = omega_rad_s - (x[IW] + x[IB])
+        S = p[n * IW + IW] + 2.0 * p[n * IW + IB] + p[n * IB + IB] + self._gyro_var
         return y, S, y * y / S
 
     def update_gyro(self, t_s: float, omega_rad_s: float) -> bool:
         """Fuse one gyro yaw rate (CCW +, rad/s). False when it failed the gate (not fused)."""
-        self.predict_to(t_s)
-        y, S, d2 = self._gyro_innovation(omega_rad_s)
-        if not self._gate("gyro", d2):
+        x, p = self._predicted(t_s)
+        y, S, d2 = self._gyro_innovation(x, p, omega_rad_s)
+        if not (S > 0.0 and self._gate("gyro", d2)):  # S > 0 unless P is broken: never fused then
+            self._store(x, p)
             return False
-        self._update_gyro(y, S)
+        # H picks omega and bias: P H' is the sum of their two columns.
+        n = self.n
+        c = math.sqrt(S)
+        x, p = self._fuse(x, p, [(u + v) / c for u, v in zip(p[IW::n], p[IB::n], strict=True)], y / c)
         # Trapezoid: the prediction turned at piecewise-constant rates, while the body's rate moved
         # from the last gyro sample's to this one's. Without this every change of yaw rate leaves a
         # heading error of (change x half a sample period), 1.3 deg per spin at 20 Hz.
-        omega_now = float(self.ekf.x[IW])
+        omega_now = x[IW]
         prev = self._gyro_prev
         if prev is not None and 0.0 < t_s - prev[0] <= TRAPEZOID_MAX_DT_S:
             missed = 0.5 * (prev[1] + omega_now) * (t_s - prev[0]) - self._turned_since_gyro_rad
-            self.ekf.x[IYAW] = wrap_angle(float(self.ekf.x[IYAW]) + missed)
+            x[IYAW] = wrap_angle(x[IYAW] + missed)
+        self._store(x, p)
         self._gyro_prev = (t_s, omega_now)
         self._turned_since_gyro_rad = 0.0
         return True
 
-    def slip_d2(self, z: Vec, R: Mat, gyro_omega_rad_s: float | None, gyro_spread_rad_s: float = 0.0) -> float:
-        """Squared Mahalanobis distance between the wheels' yaw rate and the gyro's (bias removed).
+    def slip_d2(self, z_omega_rad_s: float, r11: float, gyro_omega_rad_s: float | None,
+                gyro_spread_rad_s: float = 0.0, state: tuple[Floats, Floats] | None = None) -> float:
+        """Squared Mahalanobis distance between the wheels' yaw rate (z_omega_rad_s, variance r11) and
+        the gyro's (bias removed).
 
         The reference is what the wheels would read if the body turned at gyro - bias, with the
         state's geometry; its variance adds the gyro noise, the bias and the calibration uncertainty.
         """
         if gyro_omega_rad_s is None:
             return 0.0
-        x, P = self.ekf.x, self.ekf.P
-        # hx_wheels[1] and H_wheels[1] at x with omega = gyro - bias, in floats (it runs for every wheel
-        # reading; the same arithmetic, tests hold it to the two functions).
+        x, p = self._load() if state is None else state
+        n = self.n
+        # hx_wheels[1] and H_wheels[1] at x with omega = gyro - bias, in floats (tests hold it to the two
+        # functions).
         L = self.track_width_m
         kt, q = _geometry(x)
         sl, sr = 2.0 / (1.0 + q), 2.0 * q / (1.0 + q)
-        v, w = float(x[IV]), gyro_omega_rad_s - float(x[IB])
+        v, w = x[IV], gyro_omega_rad_s - x[IB]
         half = 0.5 * L * kt * w
         predicted = ((v + half) / sr - (v - half) / sl) / L
         h_w = (0.5 * L * kt / sr - -0.5 * L * kt / sl) / L
         # The spread of the gyro samples over the interval covers an omega that changed within it.
-        var = float(R[1, 1]) + h_w ** 2 * (self._gyro_var + float(P[IB, IB]) + gyro_spread_rad_s**2)
-        if self.n == N_CAL:
+        var = r11 + h_w ** 2 * (self._gyro_var + p[n * IB + IB] + gyro_spread_rad_s**2)
+        if n == N_CAL:
             g0 = (0.5 * L * w / sr - -0.5 * L * w / sl) / L
             dsl, dsr = -2.0 / (1.0 + q) ** 2, 2.0 / (1.0 + q) ** 2
             g1 = (-(v + 0.5 * L * kt * w) / (sr * sr) * dsr - -(v - 0.5 * L * kt * w) / (sl * sl) * dsl) / L
-            var += float(np.array([g0, g1]) @ P[IKT:, IKT:] @ np.array([g0, g1]))
-        y = float(z[1]) - predicted
+            var += g0 * g0 * p[n * IKT + IKT] + 2.0 * g0 * g1 * p[n * IKT + IKR] + g1 * g1 * p[n * IKR + IKR]
+        y = z_omega_rad_s - predicted
         return y * y / var
 
     def update_wheels(self, t_s: float, d_left_m: float, d_right_m: float, dt_s: float,
@@ -562,7 +632,7 @@ class WheelGyroEKF:
         if any: it is the reference of the slip test; `gyro_spread_rad_s` half the range of the gyro
         samples over the interval (an omega that changed within it is not slip).
         """
-        self.predict_to(t_s)
+        x, p = self._predicted(t_s)
         L = self.track_width_m
         stationary = d_left_m == 0.0 and d_right_m == 0.0
         if stationary:
@@ -572,41 +642,56 @@ class WheelGyroEKF:
             if self._still_since_s is None:
                 self._still_since_s = t_s - dt_s
             still_s = max(dt_s, t_s - self._still_since_s)
-            q = self.noise.wheel_noise_m
-            z = np.zeros(2)
-            R = np.diag([max(STATIONARY_SIGMA_V_M_S, q / still_s) ** 2,
-                         max(STATIONARY_SIGMA_OMEGA_RAD_S, 2.0 * q / (L * still_s)) ** 2])
+            res = self.noise.wheel_noise_m
+            z0 = z1 = r01 = 0.0
+            r00 = max(STATIONARY_SIGMA_V_M_S, res / still_s) ** 2
+            r11 = max(STATIONARY_SIGMA_OMEGA_RAD_S, 2.0 * res / (L * still_s)) ** 2
         else:
             self._still_since_s = None
-            z = wheel_measurement(d_left_m, d_right_m, dt_s, L)
-            R = wheel_noise(d_left_m, d_right_m, dt_s, L, self.noise)
-        slip_d2 = self.slip_d2(z, R, gyro_omega_rad_s, gyro_spread_rad_s)
-        if gyro_spread_rad_s > 0.0:
-            # The wheels measure the interval's mean rate, the state is the rate at its end: while the
-            # rate changes they differ by up to the change over the interval (a spin-up is not an outlier).
-            R = R.copy()
-            R[1, 1] += gyro_spread_rad_s**2
+            z0, z1 = _wheel_z(d_left_m, d_right_m, dt_s, L)
+            r00, r01, r11 = _wheel_r(d_left_m, d_right_m, dt_s, L, self.noise)
+        slip_d2 = self.slip_d2(z1, r11, gyro_omega_rad_s, gyro_spread_rad_s, (x, p))
+        # The wheels measure the interval's mean rate, the state is the rate at its end: while the
+        # rate changes they differ by up to the change over the interval (a spin-up is not an outlier).
+        r11 += gyro_spread_rad_s**2
         slip = slip_d2 > self._gate2 and not stationary
         if slip:
-            R = R.copy()
-            R[1, 1] *= SLIP_OMEGA_VAR_FACTOR
-            R[0, 1] *= math.sqrt(SLIP_OMEGA_VAR_FACTOR * SLIP_V_VAR_FACTOR)
-            R[1, 0] = R[0, 1]
-            R[0, 0] *= SLIP_V_VAR_FACTOR
-        x, P = self.ekf.x, self.ekf.P
-        H = H_wheels(x, L)
-        y = z - hx_wheels(x, L)
-        S = H @ P @ H.T + R
-        y0, y1 = float(y[0]), float(y[1])
-        s00, s01, s11 = float(S[0, 0]), 0.5 * (float(S[0, 1]) + float(S[1, 0])), float(S[1, 1])
-        d2 = (s11 * y0 * y0 - 2.0 * s01 * y0 * y1 + s00 * y1 * y1) / (s00 * s11 - s01 * s01)  # y' S^-1 y
+            r11 *= SLIP_OMEGA_VAR_FACTOR
+            r01 *= math.sqrt(SLIP_OMEGA_VAR_FACTOR * SLIP_V_VAR_FACTOR)
+            r00 *= SLIP_V_VAR_FACTOR
+        n = self.n
+        hv, hw = _wheel_rows(x, L)
+        ul, ur = wheel_speeds_from_state(x, L)
+        y0, y1 = z0 - 0.5 * (ul + ur), z1 - (ur - ul) / L
+        # P H': H is zero but at v, omega and the two geometry states.
+        hv3, hv4, hv6, hv7 = hv[IV], hv[IW], hv[IKT], hv[IKR]
+        hw3, hw4, hw6, hw7 = hw[IV], hw[IW], hw[IKT], hw[IKR]
+        u = [p[k + IV] * hv3 + p[k + IW] * hv4 + p[k + IKT] * hv6 + p[k + IKR] * hv7 for k in range(0, n * n, n)]
+        w = [p[k + IV] * hw3 + p[k + IW] * hw4 + p[k + IKT] * hw6 + p[k + IKR] * hw7 for k in range(0, n * n, n)]
+        s00 = hv3 * u[IV] + hv4 * u[IW] + hv6 * u[IKT] + hv7 * u[IKR] + r00
+        s01 = hv3 * w[IV] + hv4 * w[IW] + hv6 * w[IKT] + hv7 * w[IKR] + r01
+        s11 = hw3 * w[IV] + hw4 * w[IW] + hw6 * w[IKT] + hw7 * w[IKR] + r11
+        # S = C C' (Cholesky): the whitened innovation e = C^-1 y gives d2 = y' S^-1 y = |e|^2, and the
+        # whitened columns of P H' the update (_fuse).
+        c00 = math.sqrt(s00) if s00 > 0.0 else 0.0
+        c10 = s01 / c00 if c00 > 0.0 else 0.0
+        rest = s11 - c10 * c10
+        if not (c00 > 0.0 and rest > 0.0):  # S is positive definite unless P is broken: never fused then
+            self._store(x, p)
+            return WheelUpdate(False, slip, stationary, slip_d2, math.inf)
+        c11 = math.sqrt(rest)
+        e0 = y0 / c00
+        e1 = (y1 - c10 * e0) / c11
+        d2 = e0 * e0 + e1 * e1
         # Only the velocity part decides the gate when the yaw part is already down-weighted.
-        gate_d2 = y0 * y0 / s00 if slip else d2 / 2.0
+        gate_d2 = e0 * e0 if slip else d2 / 2.0
         if not self._gate("wheels", gate_d2):
+            self._store(x, p)
             self._moved_since_wheels_m = 0.0  # the next interval starts at this reading
             return WheelUpdate(False, slip, stationary, slip_d2, d2)
-        self._update(y, H, S)
-        v_now = float(self.ekf.x[IV])
+        a = [ui / c00 for ui in u]
+        x, p = self._fuse(x, p, a, e0, [(wi - c10 * ai) / c11 for wi, ai in zip(w, a, strict=True)], e1)
+        v_now = x[IV]
         prev = self._wheels_prev
         missed: float | None = None
         if not slip:
@@ -614,21 +699,22 @@ class WheelGyroEKF:
             # the state's speed, which is the mean speed of the interval before (the wheels measure
             # means), half an interval late in every change of speed: v * dt / 2 behind after each
             # acceleration (12 mm at 0.5 m/s and 20 Hz). The cumulative distances put it where it is.
-            _kt, q = _geometry(self.ekf.x)
+            _kt, q = _geometry(x)
             sl, sr = 2.0 / (1.0 + q), 2.0 * q / (1.0 + q)
             missed = 0.5 * (sl * d_left_m + sr * d_right_m) - self._moved_since_wheels_m
         elif prev is not None and 0.0 < t_s - prev[0] <= TRAPEZOID_MAX_DT_S:
             # Slipping wheels overstate the distance: trapezoid of the (down-weighted) speeds instead.
             missed = 0.5 * (prev[1] + v_now) * (t_s - prev[0]) - self._moved_since_wheels_m
         if missed is not None:
-            yaw = float(self.ekf.x[IYAW])
-            self.ekf.x[IX] += math.cos(yaw) * missed
-            self.ekf.x[IY] += math.sin(yaw) * missed
-        self._wheels_prev = (t_s, v_now)
-        self._moved_since_wheels_m = 0.0
+            yaw = x[IYAW]
+            x[IX] += math.cos(yaw) * missed
+            x[IY] += math.sin(yaw) * missed
         if slip:
             # Honest velocity variance: slipping wheels overstate the speed by an unknown amount.
-            self.ekf.P[IV, IV] += (SLIP_V_VAR_FACTOR - 1.0) * float(R[0, 0]) / SLIP_V_VAR_FACTOR
+            p[n * IV + IV] += (SLIP_V_VAR_FACTOR - 1.0) * r00 / SLIP_V_VAR_FACTOR
+        self._store(x, p)
+        self._wheels_prev = (t_s, v_now)
+        self._moved_since_wheels_m = 0.0
         return WheelUpdate(True, slip, stationary, slip_d2, d2)
 
     # -- resets
@@ -644,6 +730,6 @@ class WheelGyroEKF:
 
     def calibration(self) -> tuple[float, float, float, float]:
         """(track_scale, sigma, radius_ratio, sigma); nominal (1, prior sigma, 1, prior sigma) without calibration."""
-        P = self.ekf.P
-        return (float(self.ekf.x[IKT]), math.sqrt(max(0.0, float(P[IKT, IKT]))),
-                float(self.ekf.x[IKR]), math.sqrt(max(0.0, float(P[IKR, IKR]))))
+        x, p = self._load()
+        n = self.n
+        return (x[IKT], math.sqrt(max(0.0, p[n * IKT + IKT])), x[IKR], math.sqrt(max(0.0, p[n * IKR + IKR])))

@@ -26,10 +26,8 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from rover_bridge import frames
-from rover_bridge.estimate.ekf import IV, IW, IX, IY, IYAW, Mat, Vec
+from rover_bridge.estimate.ekf import IV, IW, IX, IY, IYAW, Floats, Rows
 from rover_bridge.frames import LocalAnchor
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.wire import FLOAT32_MAX, Link, f32, uint
@@ -54,19 +52,19 @@ def upper_triangle_21(cov: list[list[float]]) -> list[float]:
     return [float(cov[i][j]) for i in range(6) for j in range(i, 6)]
 
 
-def sigma_xy(P: np.ndarray) -> float:
+def sigma_xy(P: Rows) -> float:
     """Larger principal standard deviation of the x, y block (closed form for a 2x2)."""
-    a, b, c = float(P[IX, IX]), float(P[IX, IY]), float(P[IY, IY])
+    a, b, c = float(P[IX][IX]), float(P[IX][IY]), float(P[IY][IY])
     half_tr = 0.5 * (a + c)
     lam = half_tr + math.sqrt(max(0.0, 0.25 * (a - c) ** 2 + b * b))
     return math.sqrt(max(0.0, lam))
 
 
-def quality(P: np.ndarray, wheels_fresh: bool) -> int:
+def quality(P: Rows, wheels_fresh: bool) -> int:
     """ODOMETRY.quality (see the module docstring)."""
     if not wheels_fresh:
         return 0
-    sigma_yaw = math.sqrt(max(0.0, float(P[IYAW, IYAW])))
+    sigma_yaw = math.sqrt(max(0.0, float(P[IYAW][IYAW])))
     q = 100.0 / (1.0 + sigma_xy(P) / QUALITY_POS_M + sigma_yaw / QUALITY_YAW_RAD)
     return max(1, min(100, round(q)))
 
@@ -134,7 +132,7 @@ class OdometryPublisher:
             return None
         return now_s if self.next_s is None else self._early_from(self.next_s)
 
-    def message(self, x: Vec, P: Mat, time_usec: int, reset_counter: int, quality_0_100: int,
+    def message(self, x: Floats, P: Rows, time_usec: int, reset_counter: int, quality_0_100: int,
                 anchor: LocalAnchor | None = None) -> MAVLinkMessage:
         """ODOMETRY for state x with covariance P (rover-bridge's FLU convention) at time_usec, in the start
         frame or, with `anchor`, in the autopilot's local frame.
@@ -143,8 +141,8 @@ class OdometryPublisher:
         the state has, FRD signs applied, rotated into the anchor's frame), not built as 6x6 matrices;
         `reference_covariances` is the general construction it is tested against."""
         big = self.unobserved_variance
-        xs = x.tolist()
-        p = P.tolist()
+        xs = [float(v) for v in x]
+        p = P
         v, w = xs[IV], xs[IW]
         # FRD signs (x, -y, -yaw): x-y and x-yaw change sign, y-yaw does not.
         cxx, cxy, cyy = p[IX][IX], -p[IX][IY], p[IY][IY]
@@ -192,7 +190,7 @@ class OdometryPublisher:
         )
 
 
-def reference_covariances(x: Vec, P: Mat, big: float, anchor: LocalAnchor | None = None
+def reference_covariances(x: Floats, P: Rows, big: float, anchor: LocalAnchor | None = None
                           ) -> tuple[list[float], list[float]]:
     """ODOMETRY's (pose, velocity) covariances built the general way: 6x6 FLU matrices, S C S into FRD,
     rotated into the anchor's frame, upper triangles. The reference OdometryPublisher.message is
@@ -202,10 +200,10 @@ def reference_covariances(x: Vec, P: Mat, big: float, anchor: LocalAnchor | None
     vel_flu = [[0.0] * 6 for _ in range(6)]
     for a, ia in ((0, IX), (1, IY), (5, IYAW)):
         for b, ib in ((0, IX), (1, IY), (5, IYAW)):
-            pose_flu[a][b] = float(P[ia, ib])
+            pose_flu[a][b] = float(P[ia][ib])
     for a, ia in ((0, IV), (5, IW)):
         for b, ib in ((0, IV), (5, IW)):
-            vel_flu[a][b] = float(P[ia, ib])
+            vel_flu[a][b] = float(P[ia][ib])
     for k in (2, 3, 4):
         pose_flu[k][k] = vel_flu[k][k] = big
     lateral = LATERAL_SIGMA_M_S + LATERAL_SIGMA_PER_M_S * abs(v) + LATERAL_SIGMA_PER_RAD_S * abs(w)
