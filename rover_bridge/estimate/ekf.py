@@ -28,6 +28,8 @@ a standstill bound that tightens with its duration; publishing extrapolates at m
 EXTRAPOLATE_MAX_S past the last measurement, and restart_motion continues from that held pose.
 
 Every model is a pure function of (x, dt) so tests can check the Jacobians by finite differences.
+These matrix forms are the reference: the filter runs the same models in floats (WheelGyroEKF), and
+the tests hold the two together and to filterpy's update.
 
 filterpy's ExtendedKalmanFilter holds the state (x, P); importing it imports scipy (filterpy's
 package and its stats module do), 0.45 s of a 0.7 s start. So it is imported on first use, or,
@@ -557,10 +559,6 @@ class WheelGyroEKF:
             out[k] = p[k]
         x[IYAW] = wrap_angle(x[IYAW])
         return x, out
-
-    def gyro_innovation_d2(self, omega_rad_s: float) -> float:
-        x, p = self._load()
-        return self._gyro_innovation(x, p, omega_rad_s)[2]
 
     def _gyro_innovation(self, x: Floats, p: Floats, omega_rad_s: float) -> tuple[float, float, float]:
         """(y, S, d2) of a gyro sample: H = d(omega + bias)/dx picks two states, so all of it is scalar."""
