@@ -483,8 +483,8 @@ class WheelGyroEKF:
         distance and the speeds restart at zero with their initial uncertainty.
         """
         held_m = float(self.ekf.x[IV]) * min(max(0.0, t_s - (self.time_s or t_s)), EXTRAPOLATE_MAX_S)
-        xs, rows = self.extrapolate(t_s)
-        x, P = np.array(xs), np.array(rows)
+        x, P = self.ekf.x, self.ekf.P
+        x[:], P[:] = self.extrapolate(t_s)  # in place: filterpy's arrays stay the ones holding the state
         coast_m = abs(float(x[IV])) * COAST_S
         coast_rad = abs(float(x[IW])) * COAST_S
         x[IV] = x[IW] = 0.0
@@ -495,7 +495,6 @@ class WheelGyroEKF:
         P[IX, IX] += coast_m**2
         P[IY, IY] += coast_m**2
         P[IYAW, IYAW] += coast_rad**2
-        self._store(x.tolist(), P.ravel().tolist())
         # The held pose is at t_s; the filter's clock goes on from new_time_s (an autopilot that
         # rebooted restarts its boot clock near zero).
         self.time_s = t_s if new_time_s is None else new_time_s
