@@ -23,7 +23,7 @@ from typing import BinaryIO
 
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
-from rover_bridge.mavlink.links import Endpoint, RawFrame
+from rover_bridge.mavlink.links import Endpoint
 from rover_bridge.mavlink.signing import carries_signature
 from rover_bridge.mavlink.wire import Incoming, Link, Outgoing
 
@@ -123,16 +123,16 @@ class Runner:
             ticked = True
         self.next_deadline_s = self.core.next_deadline_s(now_s) if ticked else deadline
 
-    def _on_message(self, ep: Endpoint, msg: MAVLinkMessage | RawFrame, now_s: float) -> None:
-        if type(msg) is RawFrame:  # no core reads it: log and forward the bytes
-            frame = msg.frame
+    def _on_message(self, ep: Endpoint, msg: MAVLinkMessage | bytes, now_s: float) -> None:
+        if type(msg) is bytes:  # no core reads it: log and forward the bytes
+            frame = msg
             if self.tlog is not None:
                 self.tlog.write(frame)
             for other in self._forward_to[ep]:
                 other.queue_frame(frame)
             self.forwarded += len(self._forward_to[ep])
             return
-        assert not isinstance(msg, RawFrame)  # for mypy: type() narrows nothing
+        assert not isinstance(msg, bytes)  # for mypy: type() narrows nothing
         frame = bytes(msg.get_msgbuf())  # one copy, shared by the log and every forward
         if self.tlog is not None:
             self.tlog.write(frame)
@@ -172,8 +172,8 @@ class Runner:
             timeout = min(timeout, self._ap_read_s + self._ap_batch_s - now)
         if timeout <= 0.0:
             return self.endpoints
-        fds = [fd for fd in (ep.fileno() for ep in self.endpoints if not (resting and ep is self.autopilot))
-               if fd is not None]
+        links = [(ep, ep.fileno()) for ep in self.endpoints]  # a reconnected TCP link has a new fd
+        fds = [fd for ep, fd in links if fd is not None and not (resting and ep is self.autopilot)]
         readable, _, _ = select.select(fds + list(extra_fds) if extra_fds else fds, [], [], timeout)
         self._woken = bool(extra_fds) and any(fd in readable for fd in extra_fds)
         if not readable:
@@ -182,8 +182,7 @@ class Runner:
             return self.endpoints
         # The resting autopilot link is read on every wake-up (its batch); a link without a file
         # descriptor cannot be waited on, so it is read on every pass.
-        return [ep for ep in self.endpoints
-                if ep.fileno() is None or ep.fileno() in readable or (resting and ep is self.autopilot)]
+        return [ep for ep, fd in links if fd is None or fd in readable or (resting and ep is self.autopilot)]
 
     def run(self, should_stop: Callable[[], bool], clock: Callable[[], float] = time.monotonic,
             wake_fd: int | None = None, on_pass: Callable[[float], None] | None = None) -> None:

@@ -11,7 +11,7 @@ import contextlib
 import logging
 import socket
 import struct
-from dataclasses import dataclass
+import time
 from typing import Any
 
 from rover_bridge.errors import ConfigError
@@ -29,6 +29,10 @@ UDP_RCVBUF_BYTES = 1 << 20
 MAX_WRITE_BYTES = 1400
 # Bytes asked of a stream link (tcp, serial) per read; a UDP link returns one whole datagram anyway.
 RECV_CHUNK = 4096
+# A UDP read asks for this much: more than any datagram (as mavutil's UDP_MAX_PACKET_LEN).
+UDP_MAX_BYTES = 65535
+# What a non-blocking UDP read raises when there is nothing to read (mavutil's recv returns "" for these).
+_UDP_EMPTY = (BlockingIOError, InterruptedError, ConnectionRefusedError)
 # What decoding may raise on hostile input; caught per frame, counted as bad, never fatal.
 _DECODE_ERRORS = (mavlink.MAVError, ValueError, IndexError, TypeError, OSError, struct.error)
 
@@ -50,13 +54,6 @@ def check_url(url: str) -> str | None:
         return None
     return (f"{url!r}: not a pymavlink connection string (udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
             "tcpin:HOST:PORT or /dev/ttyXXX,BAUD)")
-
-
-@dataclass(frozen=True, slots=True)
-class RawFrame:
-    """A valid frame (CRC checked) that no core reads: forwarded and logged as is, never decoded."""
-
-    frame: bytes
 
 
 class Endpoint:
@@ -90,6 +87,14 @@ class Endpoint:
             # bridge that a busy companion computer deschedules for a few tens of ms drops nothing.
             with contextlib.suppress(OSError):
                 port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF_BYTES)
+        # A listening UDP link (udpin, no client timeout) is read and written on its socket directly:
+        # mavudp's recv/write wrap each datagram in a Python call, a time.time() and a client scan, per
+        # datagram the bridge's busiest code. The client set stays mavudp's own (write_raw and every
+        # other link type still go through mavudp), kept as its recv keeps it.
+        self._udp: socket.socket | None = None
+        if (type(self.conn) is mavutil.mavudp and self.conn.udp_server and self.conn.timeout <= 0
+                and isinstance(port, socket.socket)):
+            self._udp = port
         self.framer = Framer()
         self._pending: list[bytes] = []
         self._decode_ids: frozenset[int] | None = None
@@ -102,12 +107,13 @@ class Endpoint:
         return fd if isinstance(fd, int) and fd >= 0 else None
 
     def decode_only(self, msg_ids: frozenset[int] | None) -> None:
-        """Decode only frames with these message ids; hand the others on as RawFrame (None: decode all)."""
+        """Decode only frames with these message ids; hand the others on as their bytes (None: decode all)."""
         self._decode_ids = msg_ids
 
-    def read(self, limit: int = 10_000) -> list[MAVLinkMessage | RawFrame]:
-        """Every frame that has arrived: decoded, or a RawFrame when no core reads its id (see
-        decode_only); bad frames are counted and dropped here.
+    def read(self, limit: int = 10_000) -> list[MAVLinkMessage | bytes]:
+        """Every frame that has arrived: decoded, or its bytes when no core reads its id (see
+        decode_only: such a frame is only CRC-checked, then forwarded and logged as is); bad frames
+        are counted and dropped here.
 
         The hot path of the bridge. It reads what the link has (one datagram, or up to RECV_CHUNK
         bytes of a stream) and delimits frames itself (rover_bridge.mavlink.framing, as pymavlink's robust
@@ -116,10 +122,11 @@ class Endpoint:
         not a message object. mavutil's `recv_msg` bookkeeping (per-sysid tables, loss counts) is
         skipped too; nothing here uses it. An exception on one frame drops only that frame.
         """
-        out: list[MAVLinkMessage | RawFrame] = []
+        out: list[MAVLinkMessage | bytes] = []
         conn = self.conn
         framer = self.framer
         wanted = self._decode_ids
+        udp = self._udp
         reads = 0
         while len(out) < limit:
             item = framer.next()
@@ -128,7 +135,15 @@ class Endpoint:
                     break  # a link feeding only junk must not keep the loop here either
                 reads += 1
                 try:
-                    data = conn.recv(RECV_CHUNK)
+                    if udp is None:
+                        data = conn.recv(RECV_CHUNK)
+                    else:
+                        data, addr = udp.recvfrom(UDP_MAX_BYTES)
+                        if addr not in conn.clients:  # a new peer: what mavudp.recv records
+                            conn.clients.add(addr)
+                            conn.clients_last_alive[addr] = time.time()
+                except _UDP_EMPTY:
+                    break
                 except OSError as exc:
                     log.debug("%s: read failed: %s", self.url, exc)
                     break
@@ -145,7 +160,7 @@ class Endpoint:
             if wanted is not None and msg_id(frame) not in wanted:
                 if crc_ok(frame):
                     self.rx_frames += 1
-                    out.append(RawFrame(frame))
+                    out.append(frame)
                 else:
                     self.rx_bad += 1
                 continue
@@ -182,12 +197,23 @@ class Endpoint:
         size = 0
         for frame in pending:
             if chunk and size + len(frame) > MAX_WRITE_BYTES:
-                self.conn.write(b"".join(chunk))
+                self._write(b"".join(chunk))
                 chunk, size = [], 0
             chunk.append(frame)
             size += len(frame)
-        self.conn.write(b"".join(chunk))
+        self._write(b"".join(chunk) if len(chunk) > 1 else chunk[0])
         self.tx_frames += len(pending)
+
+    def _write(self, data: bytes) -> None:
+        udp = self._udp
+        if udp is None:
+            self.conn.write(data)
+            return
+        for addr in self.conn.clients:  # as mavudp.write without a client timeout: every peer heard from
+            try:  # noqa: SIM105 - contextlib.suppress costs a context manager per datagram
+                udp.sendto(data, addr)
+            except OSError:  # as mavudp.write: a failed datagram is lost, not an error of the loop
+                pass
 
     def send(self, msg: MAVLinkMessage, src_system: int, src_component: int) -> bytes:
         """Pack `msg` with the given source ids, write it, and return the bytes written."""
@@ -199,7 +225,7 @@ class Endpoint:
             mav.srcSystem, mav.srcComponent = src_system, src_component
             frame = msg.pack(mav)
         mav.seq = (mav.seq + 1) % 256
-        self.conn.write(frame)
+        self._write(frame)
         self.tx_frames += 1
         return frame
 
