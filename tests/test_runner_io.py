@@ -152,3 +152,34 @@ def test_zero_batch_wakes_for_every_autopilot_datagram() -> None:
         assert clock() - start < 0.01 and r.runner.autopilot in ready
     finally:
         r.close()
+
+
+def test_a_listening_link_reads_its_socket_and_answers_every_peer_it_heard() -> None:
+    """udpin goes to the socket directly (not through mavudp.recv/write): it must still learn each peer
+    as mavudp does, write to every one of them, and read nothing (no error) from an empty socket."""
+    port = free_udp_port()
+    ep = Endpoint(f"udpin:{LOCAL}:{port}", Link.GCS)
+    ep.decode_only(frozenset())  # nothing decoded: frames come back as their bytes
+    peers = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+    try:
+        assert ep.read() == []  # an empty socket: nothing, not an exception
+        frames = _telemetry(3)
+        peers[0].sendto(frames[0], (LOCAL, port))
+        peers[1].sendto(frames[1] + frames[2], (LOCAL, port))  # two frames in one datagram
+        time.sleep(0.05)
+        assert ep.read() == frames
+        assert ep.conn.clients == {(LOCAL, p.getsockname()[1]) for p in peers}
+        hb = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3)
+        sent = ep.send(hb, 1, 191)
+        ep.queue_frame(frames[0])
+        ep.flush()
+        for p in peers:
+            p.settimeout(1.0)
+            assert p.recv(65536) == sent
+            assert p.recv(65536) == frames[0]
+        assert ep.read() == []
+        assert (ep.rx_frames, ep.tx_frames) == (3, 2)
+    finally:
+        ep.close()
+        for p in peers:
+            p.close()
