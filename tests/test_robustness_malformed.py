@@ -207,6 +207,7 @@ class QueueLink:
         self.bad_bytes = 0
         self.results = 0
         self.raised = 0
+        ep._udp = None  # no direct socket I/O (a listening UDP link's fast path): all of it through conn
         ep.conn.recv = self._recv
         ep.conn.write = self.written.append
         framer = ep.framer
