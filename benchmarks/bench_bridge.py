@@ -912,7 +912,14 @@ def bench_cpu(args: argparse.Namespace) -> None:
             start = time.monotonic()
             measure_at = start + args.warmup_s
             measuring = False
+            # Who gets an instant's frames first turns with every instant: the first process sent to wakes
+            # first and sees its burst whole more often (measured: about 15 % fewer passes, 0.05-0.15x of the
+            # router less CPU for the same tree listed first), so a fixed order favours it.
+            pairs = list(zip(under_test, socks, strict=True))
+            turn, last_offset = 0, None
             for offset, what in nominal_schedule(total, 0.0):
+                if offset != last_offset:
+                    turn, last_offset = (turn + 1) % len(pairs), offset
                 target = start + offset
                 while (now := time.monotonic()) < target:
                     select.select(all_socks, [], [], target - now)
@@ -933,7 +940,7 @@ def bench_cpu(args: argparse.Namespace) -> None:
                 else:
                     frame = tel.frame(what, 100.0 + offset)
                 to_gcs_port = what.startswith("GCS_") or what == "REQUEST"
-                for br, (ap, gcs) in zip(under_test, socks, strict=True):
+                for br, (ap, gcs) in pairs[turn:] + pairs[:turn]:
                     if to_gcs_port:
                         gcs.sendto(frame, br.gcs_addr)
                     else:
