@@ -201,7 +201,7 @@ class Endpoint:
                 chunk, size = [], 0
             chunk.append(frame)
             size += len(frame)
-        self._write(b"".join(chunk) if len(chunk) > 1 else chunk[0])
+        self._write(b"".join(chunk))
         self.tx_frames += len(pending)
 
     def _write(self, data: bytes) -> None:
