@@ -4,19 +4,22 @@ autopilot's telemetry is read in batches, a ground station's request still wakes
 from __future__ import annotations
 
 import dataclasses
+import math
 import socket
 import time
 from collections.abc import Iterator
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.demo import free_udp_port
-from rover_bridge.app.loop import Runner
+from rover_bridge.app.loop import Runner, arrival_times
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.framing import Framer
 from rover_bridge.mavlink.links import MAX_WRITE_BYTES, Endpoint
-from rover_bridge.mavlink.wire import Link
+from rover_bridge.mavlink.wire import Incoming, Link, Reaction
 from rover_bridge.params import Profile
 
 LOCAL = "127.0.0.1"
@@ -183,3 +186,124 @@ def test_a_listening_link_reads_its_socket_and_answers_every_peer_it_heard() -> 
         ep.close()
         for p in peers:
             p.close()
+
+
+def _attitude(time_boot_ms: int) -> bytes:
+    """An ATTITUDE from the autopilot: a frame the cores read (decoded and handed to the core)."""
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    return bytes(mavlink.MAVLink_attitude_message(time_boot_ms, 0.0, 0.0, 0.1, 0.0, 0.0, 0.2).pack(mav))
+
+
+def test_a_listening_link_knows_when_each_datagram_arrived() -> None:
+    """The kernel's receive time of every frame, not the time it was read: a frame read 100 ms late
+    carries its arrival, and frames of one datagram share it."""
+    port = free_udp_port()
+    ep = Endpoint(f"udpin:{LOCAL}:{port}", Link.AUTOPILOT)
+    ep.decode_only(frozenset())
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        assert ep.receive_stamped
+        frames = _telemetry(3)
+        first = time.time()
+        peer.sendto(frames[0] + frames[1], (LOCAL, port))
+        time.sleep(0.1)
+        second = time.time()
+        peer.sendto(frames[2], (LOCAL, port))
+        time.sleep(0.05)
+        read_wall = time.time()
+        assert ep.read() == frames
+        stamps = ep.rx_wall_s
+        assert len(stamps) == 3 and stamps[0] == stamps[1]
+        assert first - 0.001 <= stamps[0] <= first + 0.03
+        assert second - 0.001 <= stamps[2] <= second + 0.03
+        assert read_wall - stamps[2] >= 0.045  # the arrival, not the read
+        assert ep.read() == [] and ep.rx_wall_s == []
+    finally:
+        ep.close()
+        peer.close()
+
+
+def test_the_core_is_given_each_autopilot_frame_at_its_arrival_time(rig: Rig) -> None:
+    """With receive times on (as `run` has them), a frame read late reaches the core at its arrival on
+    the runner's clock; without, at the pass's time."""
+    seen: list[float] = []
+    handle = rig.runner.core.handle
+
+    def spy(inc: Incoming, now_s: float) -> Reaction:
+        if inc.msg.get_type() == "ATTITUDE":
+            seen.append(now_s)
+        return handle(inc, now_s)
+
+    rig.runner.core.handle = spy  # type: ignore[method-assign]
+    rig.runner.receive_times = True
+    clock = time.monotonic
+    sent = [clock()]
+    rig.to_ap(_attitude(1000))
+    time.sleep(0.03)
+    sent.append(clock())
+    rig.to_ap(_attitude(1030))
+    time.sleep(0.06)
+    step_s = clock()
+    rig.runner.step(step_s)
+    assert len(seen) == 2
+    for t, s in zip(seen, sent, strict=True):
+        assert s - 0.001 <= t <= s + 0.02
+    assert step_s - seen[1] >= 0.05
+    rig.runner.receive_times = False
+    rig.to_ap(_attitude(1100))
+    time.sleep(0.03)
+    step_s = clock()
+    rig.runner.step(step_s)
+    assert seen[2] == step_s
+
+
+def test_the_batch_is_not_applied_where_the_link_has_no_receive_times() -> None:
+    """udpout (as serial and TCP) has no kernel receive times: its frames are read as they arrive, so
+    the estimator's clock mapping never counts a batch's wait as latency."""
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind((LOCAL, 0))
+    peer.settimeout(1.0)
+    profile = Profile()
+    profile = dataclasses.replace(profile, mavlink=dataclasses.replace(profile.mavlink, autopilot_batch_ms=BATCH_MS))
+    ap = Endpoint(f"udpout:{LOCAL}:{peer.getsockname()[1]}", Link.AUTOPILOT)
+    runner = Runner(BridgeCore(profile), ap, [])
+    try:
+        assert not ap.receive_stamped
+        clock = time.monotonic
+        hb = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3)
+        ap.send(hb, 1, 191)  # the autopilot learns where the bridge is
+        _data, bridge_addr = peer.recvfrom(65536)
+        peer.sendto(_telemetry(1)[0], bridge_addr)
+        time.sleep(0.01)
+        runner.step(clock())
+        assert ap.rx_frames == 1
+        peer.sendto(_telemetry(2)[1], bridge_addr)
+        start = clock()
+        runner.next_deadline_s = clock() + 10.0
+        ready = runner.wait(clock)
+        assert clock() - start < 0.5 * BATCH_MS * 1e-3 and ap in ready
+    finally:
+        runner.close()
+        peer.close()
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    now=st.floats(0.0, 1e6),
+    age_s=st.lists(st.one_of(st.floats(-10.0, 10.0), st.just(math.nan)), max_size=12),
+    floor_back=st.floats(0.0, 1.0),
+)
+def test_arrival_times_stay_ordered_and_within_the_pass(now: float, age_s: list[float], floor_back: float) -> None:
+    wall = 1.7e9
+    received = [0.0 if math.isnan(a) else wall - a for a in age_s]
+    floor = now - floor_back
+    out = arrival_times(now, wall, received, floor)
+    assert len(out) == len(received)
+    assert all(floor <= t <= now for t in out)
+    assert out == sorted(out)
+    lo = floor
+    for t, r in zip(out, received, strict=True):
+        want = now if r == 0.0 else now - (wall - r)
+        # The frame's own arrival where it is within bounds, else the nearest bound.
+        assert t == pytest.approx(min(now, max(lo, want)), abs=1e-6)
+        lo = t

@@ -14,6 +14,7 @@ sequence numbers and signatures intact.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import select
 import struct
@@ -79,10 +80,14 @@ class Runner:
         self._emergency_frames = b""
         self._emergency_key: tuple[int | None, int] | None = None
         # The autopilot's telemetry is read in batches (mavlink.autopilot_batch_ms): after a read its
-        # link is not watched until the batch time has passed; every wake-up still reads it. Its
-        # frames carry their own timestamps, which is what the estimator runs on, so a batch changes
-        # only when they are forwarded, not the estimate.
-        self._ap_batch_s = core.profile.mavlink.autopilot_batch_ms * 1e-3
+        # link is not watched until the batch time has passed; every wake-up still reads it. Only where
+        # the kernel stamps each datagram: the estimator runs on the autopilot's own stamps but maps its
+        # clock by arrival times, and a frame's read time is its arrival time only when it is read at once.
+        batch_ms = core.profile.mavlink.autopilot_batch_ms
+        self._ap_batch_s = batch_ms * 1e-3 if autopilot.receive_stamped else 0.0
+        if batch_ms > 0.0 and not autopilot.receive_stamped:
+            log.info("%s: no kernel receive times on this link: read as frames arrive (autopilot_batch_ms "
+                     "applies to udpin links)", autopilot.url)
         self._ap_read_s = -1e9
         self._stopped = False
         # Autopilot frames go to every GCS; a GCS's frames to the autopilot and the other GCSs.
@@ -90,6 +95,13 @@ class Runner:
         self._forward_to = {ep: [o for o in (self.gcs if ep.role is Link.AUTOPILOT else self.endpoints) if o is not ep]
                             for ep in self.endpoints}
         self._woken = False  # the last wait returned because of the wake-up fd (a signal): drain it
+        # The autopilot's frames go to the core at their kernel receive times, where the link has them
+        # (listening UDP): the estimator maps the autopilot's clock by the least arrival latency, and a
+        # frame read late (a batch, a busy machine) must not count its wait as latency. Only `run`
+        # turns it on: it owns the real clocks; tests stepping a simulated clock keep now_s.
+        self.receive_times = False
+        self._wall_clock: Callable[[], float] = time.time
+        self._last_s = -math.inf  # the latest time the core was given: arrival times never go back past it
 
     @property
     def endpoints(self) -> list[Endpoint]:
@@ -107,8 +119,14 @@ class Runner:
                 self._ap_read_s = now_s  # a silent link is not batched: it stays watched
             if max_frames is not None and len(msgs) >= max_frames:
                 self.backlog = True  # more may be queued, possibly in the framer where select() cannot see it
+            if self.receive_times and ep is self.autopilot and ep.rx_wall_s:
+                for msg, t in zip(msgs, arrival_times(now_s, self._wall_clock(), ep.rx_wall_s, self._last_s),
+                                  strict=True):
+                    self._on_message(ep, msg, t)
+                continue
             for msg in msgs:
                 self._on_message(ep, msg, now_s)
+        self._last_s = now_s
         for ep in self.endpoints:
             ep.flush()  # this pass's forwarded frames, in as few writes as fit
         deadline = self.core.next_deadline_s(now_s)
@@ -190,6 +208,7 @@ class Runner:
         `on_pass(now)` runs after every pass (the watchdog pings and the stop guard's liveness)."""
         extra = [wake_fd] if wake_fd is not None else []
         ready: list[Endpoint] | None = None
+        self.receive_times = clock is time.monotonic
         while not should_stop():
             self.passes += 1
             now = clock()
@@ -268,6 +287,20 @@ class Runner:
         if self.tlog is not None:  # a runner stopped without stop_safely (tests step it themselves)
             self.tlog.close()
             self.tlog = None
+
+
+def arrival_times(now_s: float, wall_s: float, received_wall_s: Sequence[float], floor_s: float) -> list[float]:
+    """When each frame arrived on the caller's time line (now_s is wall_s there): now_s less the frame's
+    age by the realtime clock. Kept within [floor_s, now_s] and in order, so that a realtime step (NTP),
+    a missing stamp (0.0) or a stamp from before the last pass cannot move the core's time back."""
+    out = []
+    t_min = floor_s
+    for received in received_wall_s:
+        t = now_s - (wall_s - received) if received > 0.0 else now_s
+        t = now_s if t > now_s else (t_min if t < t_min else t)
+        out.append(t)
+        t_min = t
+    return out
 
 
 def _signed_ok(ep: Endpoint, msg: MAVLinkMessage) -> bool:

@@ -11,6 +11,7 @@ import contextlib
 import logging
 import socket
 import struct
+import sys
 import time
 from typing import Any
 
@@ -31,12 +32,27 @@ MAX_WRITE_BYTES = 1400
 RECV_CHUNK = 4096
 # A UDP read asks for this much: more than any datagram (as mavutil's UDP_MAX_PACKET_LEN).
 UDP_MAX_BYTES = 65535
+# The kernel's receive time of each datagram on a listening UDP link (Linux SO_TIMESTAMPNS, 35 in the
+# generic socket ABI that x86 and Arm use; Python does not export it: a struct timespec on the realtime
+# clock, in the ancillary data of recvmsg). None elsewhere: frames then arrive when they are read.
+_SO_TIMESTAMPNS: int | None = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
+_TIMESPEC = struct.Struct("@ll")
+_ANC_BYTES = socket.CMSG_SPACE(_TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") else 0
 # What a non-blocking UDP read raises when there is nothing to read (mavutil's recv returns "" for these).
 _UDP_EMPTY = (BlockingIOError, InterruptedError, ConnectionRefusedError)
 # What decoding may raise on hostile input; caught per frame, counted as bad, never fatal.
 _DECODE_ERRORS = (mavlink.MAVError, ValueError, IndexError, TypeError, OSError, struct.error)
 
 _PREFIXES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:", "serial:")
+
+
+def _receive_time(anc: list[tuple[int, int, bytes]]) -> float:
+    """The kernel's receive time (realtime clock, s) in a datagram's ancillary data; 0.0 if absent."""
+    for level, kind, data in anc:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(data)
+            return float(sec) + float(nsec) * 1e-9
+    return 0.0
 
 
 def check_url(url: str) -> str | None:
@@ -95,12 +111,27 @@ class Endpoint:
         if (type(self.conn) is mavutil.mavudp and self.conn.udp_server and self.conn.timeout <= 0
                 and isinstance(port, socket.socket)):
             self._udp = port
+        # Where the kernel stamps each datagram, read() records when every frame arrived (rx_wall_s):
+        # the shell then hands the frame to the core at that time, not at the later time it was read.
+        self._stamped = False
+        if self._udp is not None and _SO_TIMESTAMPNS is not None and _ANC_BYTES:
+            try:
+                self._udp.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                self._stamped = True
+            except OSError:
+                pass
+        self.rx_wall_s: list[float] = []  # the last read's frames' receive times (realtime clock), if stamped
         self.framer = Framer()
         self._pending: list[bytes] = []
         self._decode_ids: frozenset[int] | None = None
         self.rx_frames = 0
         self.rx_bad = 0
         self.tx_frames = 0
+
+    @property
+    def receive_stamped(self) -> bool:
+        """Whether read() knows each frame's kernel receive time (rx_wall_s): a listening UDP link."""
+        return self._stamped
 
     def fileno(self) -> int | None:
         fd = getattr(self.conn, "fd", None)
@@ -127,6 +158,10 @@ class Endpoint:
         framer = self.framer
         wanted = self._decode_ids
         udp = self._udp
+        stamped = self._stamped
+        walls: list[float] = []
+        self.rx_wall_s = walls
+        wall = 0.0  # the receive time of the datagram being framed (a datagram holds whole frames)
         reads = 0
         while len(out) < limit:
             item = framer.next()
@@ -138,7 +173,11 @@ class Endpoint:
                     if udp is None:
                         data = conn.recv(RECV_CHUNK)
                     else:
-                        data, addr = udp.recvfrom(UDP_MAX_BYTES)
+                        if stamped:
+                            data, anc, _flags, addr = udp.recvmsg(UDP_MAX_BYTES, _ANC_BYTES)
+                            wall = _receive_time(anc)
+                        else:
+                            data, addr = udp.recvfrom(UDP_MAX_BYTES)
                         if addr not in conn.clients:  # a new peer: what mavudp.recv records
                             conn.clients.add(addr)
                             conn.clients_last_alive[addr] = time.time()
@@ -161,6 +200,8 @@ class Endpoint:
                 if crc_ok(frame):
                     self.rx_frames += 1
                     out.append(frame)
+                    if stamped:
+                        walls.append(wall)
                 else:
                     self.rx_bad += 1
                 continue
@@ -174,6 +215,8 @@ class Endpoint:
                 continue
             self.rx_frames += 1
             out.append(msg)
+            if stamped:
+                walls.append(wall)
         return out
 
     def _dropped(self, exc: Exception) -> None:
