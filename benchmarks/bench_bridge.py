@@ -3,7 +3,8 @@
 Subcommands (each prints a table and finishes in under 2 minutes; `all` runs them in turn):
 
   hotpath      CPU per message of Runner.step in-process, beside raw parse_buffer and BridgeCore.handle alone
-  latency      GCS request datagram in -> RC_CHANNELS_OVERRIDE datagram out, next to a pymavlink UDP echo
+  latency      GCS request datagram in -> RC_CHANNELS_OVERRIDE datagram out, next to a pymavlink UDP echo;
+               value latency (the first override that shows the request); telemetry forwarding latency
   throughput   autopilot telemetry flood routed to a GCS: highest zero-loss rate, next to raw parse_buffer
   cpu          CPU % of one core at nominal load (50 Hz wheels / IMU / control, 30 Hz ODOMETRY), next to a
                plain pymavlink router; --parts: also the bridge with its cores stubbed (where the CPU goes)
@@ -653,6 +654,7 @@ def bench_latency(args: argparse.Namespace) -> None:
         print(f"{br.name} counters: accepted {st.get('command', {}).get('requests.accepted')}, "
               f"outputs {st.get('command', {}).get('outputs.sent')}")
     value_latency(args)
+    forward_latency(args)
 
 
 def collect_overrides(sock: socket.socket, parser: Any, out: list[tuple[float, int]]) -> None:
@@ -738,6 +740,63 @@ def value_latency(args: argparse.Namespace) -> None:
                 "ms from the request to the first override, and to the first that moved toward it",
                 ["bridge", "n", "first_p50_ms", "first_p99_ms", "moved_p50_ms", "moved_p99_ms", "never_reflected"],
                 rows)
+
+
+def collect_forwarded(sock: socket.socket, got: dict[int, float]) -> None:
+    """The VFR_HUD frames of forward_latency queued on `sock`: their number (airspeed) -> kernel stamp."""
+    while (item := recv_stamped(sock)) is not None:
+        data, stamp = item
+        i = 0
+        while i + 10 <= len(data) and data[i] == 0xFD:  # every frame of the datagram
+            if data[i + 7] == mavlink.MAVLINK_MSG_ID_VFR_HUD and data[i + 5] == AP_SYS:
+                got.setdefault(round(struct.unpack_from("<f", data[i:i + 14].ljust(14, b"\0"), 10)[0]), stamp)
+            i += 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+
+
+def forward_latency(args: argparse.Namespace) -> None:
+    """Telemetry alone (VFR_HUD, forwarded raw) every 15-25 ms (random spacing, fixed seed) and nothing
+    else: no request wakes the bridge, so a frame waits for the batch (mavlink.autopilot_batch_ms) at
+    most. Per frame: its send time to the kernel stamp of the datagram that brought it to the GCS."""
+    rng = random.Random(11)
+    spacing = [rng.uniform(0.015, 0.025) for _ in range(args.forward_frames)]
+    mav = mavlink.MAVLink(None, srcSystem=AP_SYS, srcComponent=AP_COMP)
+    frames = []
+    for i in range(len(spacing)):
+        frames.append(bytes(mavlink.MAVLink_vfr_hud_message(float(i + 1), 0.0, 0, 0, 0.0, 0.0).pack(mav)))
+        mav.seq = (mav.seq + 1) % 256
+    with tempfile.TemporaryDirectory() as tmp:
+        under_test = bridges(args, str(DEFAULT_PROFILE), tmp)
+        rows = []
+        for br in under_test:
+            ap, gcs = udp_socket(), udp_socket(True)
+            sent: dict[int, float] = {}
+            got: dict[int, float] = {}
+            try:
+                br.wait_up(ap, gcs)
+                hb = Heartbeats(ap, br, gcs)
+                t_next = time.monotonic() + 1.0
+                for i, gap in enumerate(spacing):
+                    while (now := time.monotonic()) < t_next:
+                        hb.poll(now)
+                        collect_forwarded(gcs, got)
+                        drain(ap)
+                        select.select([gcs], [], [], min(0.005, t_next - now))
+                    sent[i + 1] = time.time()
+                    ap.sendto(frames[i], br.ap_addr)
+                    t_next += gap
+                end = time.monotonic() + 0.3
+                while time.monotonic() < end:
+                    collect_forwarded(gcs, got)
+                    time.sleep(0.005)
+            finally:
+                br.stop()
+                ap.close()
+                gcs.close()
+            lat = [(got[k] - t) * 1e3 for k, t in sent.items() if k in got]
+            rows.append([br.name, len(sent), len(sent) - len(lat), pct(lat, 50), pct(lat, 99), max(lat)])
+    print_table(f"1c. telemetry forwarding: {args.forward_frames} autopilot frames every 15-25 ms and nothing "
+                "else; ms from the send to the GCS's kernel stamp", ["bridge", "n", "lost", "p50_ms", "p99_ms",
+                                                                   "max_ms"], rows)
 
 
 # ------------------------------------------------------------------------------------- 2. throughput
@@ -1393,6 +1452,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--requests", type=int, default=5000)
     p.add_argument("--value-requests", type=int, default=600, help="requests of the value-latency run")
     p.add_argument("--interval-ms", type=float, default=2.0, help="time between requests (default %(default)s)")
+    p.add_argument("--forward-frames", type=int, default=500, help="frames of the telemetry-forwarding run")
     p = sub.add_parser("throughput")
     p.add_argument("--start-hz", type=float, default=4000.0)
     p.add_argument("--step-s", type=float, default=1.5)

@@ -249,10 +249,12 @@ class MavlinkParams:
                                 lo=0, hi=255)
     component_id: int = _p(191, "The bridge's own component id (MAV_COMP_ID_ONBOARD_COMPUTER).", lo=1, hi=255)
     autopilot_batch_ms: float = _p(
-        0.0, "After reading the autopilot link, wait this long before waking for it again (its telemetry is "
-        "then read in batches, and on every other wake-up): fewer wake-ups, but telemetry reaches the GCS "
-        "later and ODOMETRY's clock mapping, fed by arrival times, loses accuracy (about 1 deg of heading at "
-        "2 rad/s with 20 ms). 0 wakes for every datagram. Ground-station links always wake at once.",
+        25.0, "After reading the autopilot link, wait this long before waking for it again: its telemetry is "
+        "then read in the wake-ups the bridge makes anyway (a request, an output) or after this time, about "
+        "half the wake-ups at 50 Hz telemetry, but forwarded to the GCS up to this much later. Only on a link "
+        "whose datagrams the kernel time-stamps (udpin), so the estimator still sees each frame's arrival "
+        "time; serial, TCP and udpout links are read as frames arrive. 0 wakes for every datagram. "
+        "Ground-station links always wake at once.",
         unit="ms", lo=0.0, hi=50.0)
 
 
