@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.demo import free_udp_port
-from rover_bridge.app.loop import Runner, arrival_times
+from rover_bridge.app.loop import AP_BATCH_MAX_FRAMES, Runner, arrival_time
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.framing import Framer
 from rover_bridge.mavlink.links import MAX_WRITE_BYTES, Endpoint
@@ -297,8 +297,9 @@ def test_arrival_times_stay_ordered_and_within_the_pass(now: float, age_s: list[
     wall = 1.7e9
     received = [0.0 if math.isnan(a) else wall - a for a in age_s]
     floor = now - floor_back
-    out = arrival_times(now, wall, received, floor)
-    assert len(out) == len(received)
+    out = []
+    for r in received:  # as Runner.step: each frame's time is the next one's floor
+        out.append(arrival_time(now, wall, r, out[-1] if out else floor))
     assert all(floor <= t <= now for t in out)
     assert out == sorted(out)
     lo = floor
@@ -307,3 +308,22 @@ def test_arrival_times_stay_ordered_and_within_the_pass(now: float, age_s: list[
         # The frame's own arrival where it is within bounds, else the nearest bound.
         assert t == pytest.approx(min(now, max(lo, want)), abs=1e-6)
         lo = t
+
+
+def test_the_batch_shortens_under_a_flood_so_the_kernel_buffer_never_overflows(rig: Rig) -> None:
+    """A batch lets frames pile up in the kernel's receive buffer; at a flood's rate 40 ms would be
+    thousands of datagrams (dropped). Beyond AP_BATCH_MAX_FRAMES' worth at the link's recent rate the
+    link is not batched."""
+    clock = time.monotonic
+    frames = _telemetry(200)
+    for _ in range(10):  # 2000 frames in a few ms: a flood
+        for f in frames:
+            rig.to_ap(f)
+        rig.runner.step(clock())
+    rate_hz = rig.runner._ap_rate_hz
+    assert rate_hz * BATCH_MS * 1e-3 > 4 * AP_BATCH_MAX_FRAMES  # the full batch would pile up far more
+    rig.to_ap(frames[0])
+    start = clock()
+    rig.runner.next_deadline_s = clock() + 10.0
+    ready = rig.runner.wait(clock)
+    assert clock() - start < 0.5 * BATCH_MS * 1e-3 and rig.runner.autopilot in ready

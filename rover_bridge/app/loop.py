@@ -39,6 +39,12 @@ MAX_SLEEP_S = 0.05
 # due deadlines, so a flooding link delays the control output by at most this many frames (instead
 # of its whole backlog) and cannot starve the other links.
 RUN_BATCH = 16
+# The most autopilot frames a batch may let pile up in the kernel's receive buffer (a few hundred
+# small datagrams fit): at a rate that would pile up more, the link is not batched at all (it wakes
+# the loop for every read, as without a batch), so a flood is never dropped for a batch; the busy
+# loop then reads it in every pass anyway. The rate is smoothed over AP_RATE_TAU_S.
+AP_BATCH_MAX_FRAMES = 64
+AP_RATE_TAU_S = 0.1
 # While waiting for the autopilot to confirm the stop: how long one wait may last, and how far past
 # the core's own timeout the shell gives up if the core never settles (a bug must not hang the exit).
 STOP_POLL_S = 0.01
@@ -89,6 +95,8 @@ class Runner:
             log.info("%s: no kernel receive times on this link: read as frames arrive (autopilot_batch_ms "
                      "applies to udpin links)", autopilot.url)
         self._ap_read_s = -1e9
+        self._ap_rate_hz = 0.0  # the autopilot link's recent frame rate (AP_RATE_TAU_S), as of _ap_rate_s
+        self._ap_rate_s = 0.0
         self._stopped = False
         # Autopilot frames go to every GCS; a GCS's frames to the autopilot and the other GCSs.
         self._endpoints = [self.autopilot, *self.gcs]
@@ -117,11 +125,16 @@ class Runner:
             msgs = ep.read() if max_frames is None else ep.read(max_frames)
             if msgs and ep is self.autopilot:
                 self._ap_read_s = now_s  # a silent link is not batched: it stays watched
+                decay = math.exp(-max(0.0, now_s - self._ap_rate_s) / AP_RATE_TAU_S)
+                self._ap_rate_hz = self._ap_rate_hz * decay + len(msgs) / AP_RATE_TAU_S
+                self._ap_rate_s = now_s
             if max_frames is not None and len(msgs) >= max_frames:
                 self.backlog = True  # more may be queued, possibly in the framer where select() cannot see it
             if self.receive_times and ep is self.autopilot and ep.rx_wall_s:
-                for msg, t in zip(msgs, arrival_times(now_s, self._wall_clock(), ep.rx_wall_s, self._last_s),
-                                  strict=True):
+                wall_s, t = self._wall_clock(), self._last_s
+                for msg, received in zip(msgs, ep.rx_wall_s, strict=True):
+                    if type(msg) is not bytes:  # forwarded bytes need no time
+                        t = arrival_time(now_s, wall_s, received, t)
                     self._on_message(ep, msg, t)
                 continue
             for msg in msgs:
@@ -185,9 +198,12 @@ class Runner:
         (unless it is neither readable nor batched); every link if it did not sleep."""
         now = clock()
         timeout = min(MAX_SLEEP_S, self.next_deadline_s - now)
-        resting = now < self._ap_read_s + self._ap_batch_s
+        batch = self._ap_batch_s
+        if self._ap_rate_hz * batch > AP_BATCH_MAX_FRAMES:
+            batch = 0.0
+        resting = now < self._ap_read_s + batch
         if resting:
-            timeout = min(timeout, self._ap_read_s + self._ap_batch_s - now)
+            timeout = min(timeout, self._ap_read_s + batch - now)
         if timeout <= 0.0:
             return self.endpoints
         links = [(ep, ep.fileno()) for ep in self.endpoints]  # a reconnected TCP link has a new fd
@@ -289,18 +305,12 @@ class Runner:
             self.tlog = None
 
 
-def arrival_times(now_s: float, wall_s: float, received_wall_s: Sequence[float], floor_s: float) -> list[float]:
-    """When each frame arrived on the caller's time line (now_s is wall_s there): now_s less the frame's
-    age by the realtime clock. Kept within [floor_s, now_s] and in order, so that a realtime step (NTP),
-    a missing stamp (0.0) or a stamp from before the last pass cannot move the core's time back."""
-    out = []
-    t_min = floor_s
-    for received in received_wall_s:
-        t = now_s - (wall_s - received) if received > 0.0 else now_s
-        t = now_s if t > now_s else (t_min if t < t_min else t)
-        out.append(t)
-        t_min = t
-    return out
+def arrival_time(now_s: float, wall_s: float, received_wall_s: float, floor_s: float) -> float:
+    """When a frame arrived on the caller's time line (now_s is wall_s there): now_s less the frame's age
+    by the realtime clock, kept within [floor_s, now_s]. floor_s is the time given to the core last, so a
+    realtime step (NTP), a missing stamp (0.0) or a stamp from before the last pass cannot move it back."""
+    t = now_s - (wall_s - received_wall_s) if received_wall_s > 0.0 else now_s
+    return now_s if t > now_s else (floor_s if t < floor_s else t)
 
 
 def _signed_ok(ep: Endpoint, msg: MAVLinkMessage) -> bool:

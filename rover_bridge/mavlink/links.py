@@ -48,8 +48,8 @@ _PREFIXES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:", "serial
 
 def _receive_time(anc: list[tuple[int, int, bytes]]) -> float:
     """The kernel's receive time (realtime clock, s) in a datagram's ancillary data; 0.0 if absent."""
-    for level, kind, data in anc:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+    for _level, kind, data in anc:  # SOL_SOCKET's: the only level this socket asks for
+        if kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
             sec, nsec = _TIMESPEC.unpack_from(data)
             return float(sec) + float(nsec) * 1e-9
     return 0.0
@@ -175,7 +175,7 @@ class Endpoint:
                     else:
                         if stamped:
                             data, anc, _flags, addr = udp.recvmsg(UDP_MAX_BYTES, _ANC_BYTES)
-                            wall = _receive_time(anc)
+                            wall = _receive_time(anc) if anc else 0.0
                         else:
                             data, addr = udp.recvfrom(UDP_MAX_BYTES)
                         if addr not in conn.clients:  # a new peer: what mavudp.recv records
