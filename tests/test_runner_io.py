@@ -217,6 +217,7 @@ def test_a_listening_link_knows_when_each_datagram_arrived() -> None:
         assert first - 0.001 <= stamps[0] <= first + 0.03
         assert second - 0.001 <= stamps[2] <= second + 0.03
         assert read_wall - stamps[2] >= 0.045  # the arrival, not the read
+        assert ep.conn.clients == {(LOCAL, peer.getsockname()[1])}  # the peer learnt, as on recvfrom
         assert ep.read() == [] and ep.rx_wall_s == []
     finally:
         ep.close()

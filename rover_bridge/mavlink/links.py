@@ -112,9 +112,10 @@ class Endpoint:
                 and isinstance(port, socket.socket)):
             self._udp = port
         # Where the kernel stamps each datagram, read() records when every frame arrived (rx_wall_s):
-        # the shell then hands the frame to the core at that time, not at the later time it was read.
+        # the shell then hands the autopilot's frames to the core at that time, not at the later time
+        # they were read (the estimator maps the autopilot's clock by them; nothing needs a GCS's).
         self._stamped = False
-        if self._udp is not None and _SO_TIMESTAMPNS is not None and _ANC_BYTES:
+        if role is Link.AUTOPILOT and self._udp is not None and _SO_TIMESTAMPNS is not None and _ANC_BYTES:
             try:
                 self._udp.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
                 self._stamped = True
@@ -130,7 +131,7 @@ class Endpoint:
 
     @property
     def receive_stamped(self) -> bool:
-        """Whether read() knows each frame's kernel receive time (rx_wall_s): a listening UDP link."""
+        """Whether read() knows each frame's kernel receive time (rx_wall_s): a listening UDP autopilot link."""
         return self._stamped
 
     def fileno(self) -> int | None:
