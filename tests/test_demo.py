@@ -78,6 +78,39 @@ def test_demo_leaves_no_process_behind_when_interrupted(tmp_path: Path) -> None:
             proc.wait()
 
 
+def test_demo_killed_outright_takes_its_emulator_and_bridge_with_it(tmp_path: Path) -> None:
+    """SIGKILL (or a SIGTERM / SIGHUP it does not catch) runs none of the demo's own clean-up; its
+    children, in sessions of their own, must still not run on (a bridge and an emulator burning a
+    laptop's CPU after its terminal closed)."""
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "demo", "--quick", "--plot", "none"],
+                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    children: list[int] = []
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(children) < 2:
+            children = _children(proc.pid)
+            time.sleep(0.2)
+        assert len(children) >= 2, "demo did not start the emulator and the bridge"
+        time.sleep(1.0)
+        proc.kill()
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 15  # the bridge stops the rover first (at most a second or so)
+        while time.monotonic() < deadline and any(_alive(pid) for pid in children):
+            time.sleep(0.1)
+        assert not [pid for pid in children if _alive(pid)], "the demo's children outlived it"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for pid in children:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
 def _children(pid: int) -> list[int]:
     out = []
     for entry in Path("/proc").iterdir():

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import ctypes
+import functools
 import itertools
 import json
 import math
@@ -255,6 +257,20 @@ def latencies_from_tlog(path: Path) -> list[float]:
     return out
 
 
+
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """In a child before exec: SIGTERM when the demo's thread that started it dies, however it dies
+    (Linux prctl PR_SET_PDEATHSIG; elsewhere nothing, and the demo's own stop is all there is)."""
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != parent_pid:  # the demo died before the request took hold: nothing would signal us
+        os._exit(1)
+
 class Demo:
     def __init__(self, scenario: str = "clean", scale: float = 1.0, seed: int = 1,
                  progress: TextIO | None = sys.stderr, workdir: Path | None = None) -> None:
@@ -293,10 +309,13 @@ class Demo:
                       "--autopilot", f"udpout:127.0.0.1:{ap_port}", "--gcs", f"udpin:127.0.0.1:{gcs_port}",
                       "--tlog", str(tmp / "bridge.tlog"), "--stats-json", str(tmp / "stats.json")]
         # Own process groups: a terminal's Ctrl-C reaches only the demo, which then stops them in order.
+        # A demo that dies without stopping them (SIGKILL, SIGTERM, a closed terminal's SIGHUP) takes
+        # them with it: the kernel sends each one SIGTERM (the bridge then stops the rover as always).
         for cmd, log_name in ((sitl_cmd, "sitl.log"), (bridge_cmd, "bridge.log")):
             with open(tmp / log_name, "wb") as log_file:
                 self.procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT,
-                                                   start_new_session=True))
+                                                   start_new_session=True,
+                                                   preexec_fn=functools.partial(_die_with_parent, os.getpid())))
         gcs: Any = mavutil.mavlink_connection(f"udpout:127.0.0.1:{gcs_port}", source_system=GCS_SYSID,
                                               source_component=GCS_COMPID, dialect="ardupilotmega")
         try:
