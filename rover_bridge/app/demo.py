@@ -257,7 +257,6 @@ def latencies_from_tlog(path: Path) -> list[float]:
     return out
 
 
-
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
@@ -270,6 +269,7 @@ def _die_with_parent(parent_pid: int) -> None:
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
     if os.getppid() != parent_pid:  # the demo died before the request took hold: nothing would signal us
         os._exit(1)
+
 
 class Demo:
     def __init__(self, scenario: str = "clean", scale: float = 1.0, seed: int = 1,

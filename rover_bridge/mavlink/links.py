@@ -176,7 +176,7 @@ class Endpoint:
                     else:
                         if stamped:
                             data, anc, _flags, addr = udp.recvmsg(UDP_MAX_BYTES, _ANC_BYTES)
-                            wall = _receive_time(anc) if anc else 0.0
+                            wall = _receive_time(anc)
                         else:
                             data, addr = udp.recvfrom(UDP_MAX_BYTES)
                         if addr not in conn.clients:  # a new peer: what mavudp.recv records
