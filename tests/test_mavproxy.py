@@ -45,14 +45,17 @@ def mavproxy_env(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
 
 @contextlib.contextmanager
 def rover_with_mavproxy(env: dict[str, str], tmp_path: Path, vehicle: VehicleConfig,
-                        modules: str = "cmdlong") -> Iterator[tuple[Emulator, Any]]:
-    """The emulator (stepped by the test), the bridge process, and MAVProxy on the bridge's GCS port."""
+                        modules: str = "cmdlong", bridge_listens: bool = False) -> Iterator[tuple[Emulator, Any]]:
+    """The emulator (stepped by the test), the bridge process, and MAVProxy on the bridge's GCS port.
+    `bridge_listens`: the bridge's autopilot link is udpin (as from SITL's or mavlink-router's output),
+    the one it reads in batches with kernel receive times; otherwise udpout to the emulator."""
     ap_port, gcs_port = free_udp_port(), free_udp_port()
     emu = Emulator(vehicle, seed=9)
-    emu.open(f"udpin:127.0.0.1:{ap_port}")
+    emu.open(f"{'udpout' if bridge_listens else 'udpin'}:127.0.0.1:{ap_port}")
     bridge = subprocess.Popen(
         [sys.executable, "-m", "rover_bridge", "run", "--params", str(REPO / "params" / "default.toml"),
-         "--autopilot", f"udpout:127.0.0.1:{ap_port}", "--gcs", f"udpin:127.0.0.1:{gcs_port}"],
+         "--autopilot", f"{'udpin' if bridge_listens else 'udpout'}:127.0.0.1:{ap_port}",
+         "--gcs", f"udpin:127.0.0.1:{gcs_port}"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     mavproxy = subprocess.Popen(
         [sys.executable, "-m", "MAVProxy.mavproxy", f"--master=udpout:127.0.0.1:{gcs_port}", "--nowait",
@@ -73,8 +76,11 @@ def rover_with_mavproxy(env: dict[str, str], tmp_path: Path, vehicle: VehicleCon
         emu.close()
 
 
-def test_mavproxy_velocity_command_drives_the_rover_straight(mavproxy_env: dict[str, str], tmp_path: Path) -> None:
-    with rover_with_mavproxy(mavproxy_env, tmp_path, VehicleConfig(start_armed=True)) as (emu, stdin):
+@pytest.mark.parametrize("bridge_listens", [False, True], ids=["autopilot-udpout", "autopilot-udpin-batched"])
+def test_mavproxy_velocity_command_drives_the_rover_straight(mavproxy_env: dict[str, str], tmp_path: Path,
+                                                             bridge_listens: bool) -> None:
+    with rover_with_mavproxy(mavproxy_env, tmp_path, VehicleConfig(start_armed=True),
+                             bridge_listens=bridge_listens) as (emu, stdin):
         last = time.monotonic()
         deadline = last + 40.0
         sending_since: float | None = None
