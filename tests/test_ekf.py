@@ -361,3 +361,44 @@ def test_the_slip_distance_in_floats_is_the_one_from_hx_and_h(seed: int, calibra
     var += float(g @ f.P[IKT:, IKT:] @ g)
     ref = (float(z[1]) - float(hx_wheels(xg, L)[1])) ** 2 / var
     assert f.slip_d2(float(z[1]), float(R[1, 1]), gyro, spread) == pytest.approx(ref, rel=1e-13)
+
+
+def test_a_reading_within_a_millisecond_of_the_state_costs_no_prediction() -> None:
+    ekf = _settled()
+    t = float(ekf.time_s or 0.0) + 0.02
+    ekf.update_gyro(t, 0.0)
+    steps = ekf.predict_steps
+    ekf.update_wheels(t + 0.0004, 0.01, 0.01, 0.02, gyro_omega_rad_s=0.0)
+    assert ekf.predict_steps == steps  # the same instant at the stamps' millisecond resolution
+    assert ekf.time_s == t  # the 0.4 ms is predicted with the next interval, not lost
+    ekf.update_gyro(t + 0.02, 0.0)
+    assert ekf.predict_steps == steps + 1
+
+
+@pytest.mark.parametrize("gyro_first", [True, False])
+def test_readings_a_fraction_of_a_millisecond_apart_drive_the_path_of_simultaneous_ones(gyro_first: bool) -> None:
+    # ATTITUDE is stamped in ms, WHEEL_DISTANCE (PX4) in us: the gyro reading of a burst lands up to a
+    # millisecond off the wheels', by a varying amount. Applied at the state's time, the turn and the
+    # distance of that fraction must still count exactly once.
+    v, w, period = 0.4, 0.2, 0.02
+    d_left, d_right = (v - w * L / 2) * period, (v + w * L / 2) * period
+    offsets = [0.0, 0.0007, 0.0003, 0.0009, 0.0]  # the gyro's lag (gyro first) or lead behind the wheels
+    together, apart = WheelGyroEKF(L), WheelGyroEKF(L)
+    worst_m = worst_rad = 0.0
+    for k in range(1, 301):  # 6 s: 1.2 rad of arc
+        t = k * period
+        together.update_gyro(t, w)
+        together.update_wheels(t, d_left, d_right, period, gyro_omega_rad_s=w)
+        off = offsets[k % len(offsets)]
+        if gyro_first:
+            apart.update_gyro(t - off, w)
+            apart.update_wheels(t, d_left, d_right, period, gyro_omega_rad_s=w)
+        else:
+            apart.update_wheels(t, d_left, d_right, period, gyro_omega_rad_s=w)
+            apart.update_gyro(t + off, w)
+        (xa, _), (xb, _) = together.extrapolate(t + 0.01), apart.extrapolate(t + 0.01)
+        worst_m = max(worst_m, math.hypot(xb[IX] - xa[IX], xb[IY] - xa[IY]))
+        worst_rad = max(worst_rad, abs(xb[IYAW] - xa[IYAW]))
+    assert worst_m < 1e-3  # at most the 1 ms of travel and turn, never accumulated
+    assert worst_rad < 1e-3
+    assert xa[IYAW] == pytest.approx(w * (300 * period + 0.01), abs=0.01)  # and the path is the true one

@@ -102,6 +102,13 @@ MAX_PREDICT_GAP_S = 1.0
 EXTRAPOLATE_MAX_S = 0.2  # publishing: how far past the last measurement the pose may move
 COAST_S = 0.3  # a rover whose motors lost power stops within about this (distance = speed x this, 1 sigma)
 TRAPEZOID_MAX_DT_S = 0.2  # longer gyro gaps: no trapezoid correction (the rate is not linear over them)
+# A measurement stamped less than this after the state is applied at the state's time, without a
+# prediction; the interval is predicted with the next one, so no time is lost. ATTITUDE, SCALED_IMU and
+# ArduPilot's WHEEL_DISTANCE (1000 * millis()) are stamped in milliseconds: the gyro and wheel readings
+# of one telemetry burst share a millisecond, or differ by one or by the rounding of their units, and
+# each such step was a whole covariance propagation that moved nothing. The trapezoid corrections of
+# yaw and distance are cumulative, so what this defers is made up at the next measurement.
+SAME_INSTANT_S = 1e-3
 
 
 @dataclass(frozen=True, slots=True)
@@ -346,8 +353,9 @@ class WheelGyroEKF:
     """filterpy's ExtendedKalmanFilter with the models above, gating and slip handling.
 
     Time is an argument everywhere (`t_s`, any monotonic time line); the filter keeps the time of
-    its state and never moves backwards: a measurement older than the state is applied at the
-    state's time (a few ms of skew between streams is far below what the model resolves).
+    its state and never moves backwards: a measurement older than the state, or less than
+    SAME_INSTANT_S newer, is applied at the state's time (a few ms of skew between streams is far
+    below what the model resolves).
 
     filterpy's filter holds the state: `ekf.x` (8) and `ekf.P` (8 x 8) are its two arrays, current
     after every call. The arithmetic of the running filter reads them into floats, computes in
@@ -444,7 +452,7 @@ class WheelGyroEKF:
             self.time_s = t_s
             return self._load()
         total = t_s - self.time_s
-        if total <= 0.0:
+        if total < SAME_INSTANT_S:
             return self._load()
         if total > MAX_PREDICT_GAP_S:
             self.restart_motion(t_s)
