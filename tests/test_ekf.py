@@ -20,6 +20,7 @@ from rover_bridge.estimate.ekf import (
     IY,
     IYAW,
     N_CAL,
+    PUBLISHED,
     F_jacobian,
     H_gyro,
     H_wheels,
@@ -343,6 +344,9 @@ def test_extrapolation_is_the_matrix_form(seed: int) -> None:
         p_ref = F @ p0 @ F.T + process_noise(x0, dt) * max(1.0, dt / MAX_PREDICT_STEP_S)
         np.testing.assert_allclose(x, fx(x0, moved), rtol=0, atol=0)
         np.testing.assert_allclose(np.array(rows), p_ref, rtol=1e-12, atol=1e-15)
+        # ODOMETRY's block (x, y, yaw, v, omega) alone: the same numbers, computed from that block only.
+        x5, rows5 = f.extrapolate(dt, PUBLISHED)
+        assert x5 == x and rows5 == [row[:PUBLISHED] for row in rows[:PUBLISHED]]
     assert np.array_equal(f.x, x0) and np.array_equal(f.P, p0)  # the filter did not move
 
 

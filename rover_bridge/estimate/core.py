@@ -40,7 +40,7 @@ from rover_bridge import frames
 from rover_bridge.estimate.anchor import FrameAnchor
 from rover_bridge.estimate.clock import JUMP, REBOOT, AutopilotClock
 from rover_bridge.estimate.diagnostics import CalibrationReports, SlipMonitor
-from rover_bridge.estimate.ekf import IB, IV, IW, IX, IY, IYAW, NoiseModel, WheelGyroEKF
+from rover_bridge.estimate.ekf import IB, IV, IW, IX, IY, IYAW, PUBLISHED, NoiseModel, WheelGyroEKF
 from rover_bridge.estimate.gyro import ALL_GYRO_IDS, GYRO_MESSAGES, GyroSelector
 from rover_bridge.estimate.publish import OdometryPublisher, quality, sigma_xy
 from rover_bridge.estimate.resets import POSE_RESET_COMMAND, ResetCounter, requested_pose
@@ -505,7 +505,7 @@ class EstimateCore:
 
     def odometry_message(self, now_s: float) -> MAVLinkMessage:
         """ODOMETRY for the estimate extrapolated to now_s (see rover_bridge.estimate.publish)."""
-        x, P = self.ekf.extrapolate(self.clock.autopilot_time_s(now_s))  # noqa: N806 - a covariance
+        x, P = self.ekf.extrapolate(self.clock.autopilot_time_s(now_s), PUBLISHED)  # noqa: N806 - a covariance
         fresh = self._last_wheel_fused_s is not None and now_s - self._last_wheel_fused_s <= WHEELS_STALE_S
         return self.publisher.message(x, P, self.clock.time_usec(now_s), self.resets.value, quality(P, fresh),
                                       self.frame.anchor)

@@ -63,6 +63,7 @@ Rows = Sequence[Sequence[float]] | Mat  # a matrix as rows: a nested list, or an
 
 IX, IY, IYAW, IV, IW, IB, IKT, IKR = range(8)
 N_CAL = 8
+PUBLISHED = IW + 1  # the states ODOMETRY carries (x, y, yaw, v, omega): the covariance block it reads
 
 # Process noise densities (per second). Chosen so v and omega follow the sensors closely
 # (a rover changes speed far faster than the filter would believe otherwise); bias and
@@ -308,17 +309,19 @@ _XS = struct.Struct(f"{N_CAL}d")
 _PS = struct.Struct(f"{N_CAL * N_CAL}d")
 
 
-def _propagate(x: list[float], p: list[float], dt_s: float, q: Floats) -> None:
-    """x = fx(x, dt_s) and P = F P F' + diag(q), in place, p the row-major 8 x 8 covariance.
+def _propagate(x: list[float], p: list[float], dt_s: float, q: Floats, n: int = N_CAL) -> None:
+    """x = fx(x, dt_s) and P = F P F' + diag(q), in place, p the row-major n x n covariance: all of it, or
+    the block of the first n >= 5 states (x, y, yaw, v, omega: F moves nothing else, so that block of
+    F P F' is computed from that block of P alone, with the same operations as in the whole).
 
     F is the identity but for 7 entries (F_jacobian), so F P changes the rows x, y, yaw only and
     (F P) F' their columns only: about 60 products instead of two 8 x 8 matrix products. The block
     of x, y, yaw is taken from its upper triangle and the columns from the rows, so P stays exactly
     symmetric."""
     x[IX], x[IY], x[IYAW], f02, f12, f03, f13, f04, f14 = _motion_step(x[IX], x[IY], x[IYAW], x[IV], x[IW], dt_s)
-    r2, r3, r4 = p[16:24], p[24:32], p[32:40]
-    t0 = [a + f02 * b + f03 * c + f04 * d for a, b, c, d in zip(p[0:8], r2, r3, r4, strict=True)]
-    t1 = [a + f12 * b + f13 * c + f14 * d for a, b, c, d in zip(p[8:16], r2, r3, r4, strict=True)]
+    r2, r3, r4 = p[2 * n:3 * n], p[3 * n:4 * n], p[4 * n:5 * n]
+    t0 = [a + f02 * b + f03 * c + f04 * d for a, b, c, d in zip(p[0:n], r2, r3, r4, strict=True)]
+    t1 = [a + f12 * b + f13 * c + f14 * d for a, b, c, d in zip(p[n:2 * n], r2, r3, r4, strict=True)]
     t2 = [b + dt_s * d for b, d in zip(r2, r4, strict=True)]
     n01 = t0[1] + f12 * t0[2] + f13 * t0[3] + f14 * t0[4]
     n02 = t0[2] + dt_s * t0[4]
@@ -327,15 +330,15 @@ def _propagate(x: list[float], p: list[float], dt_s: float, q: Floats) -> None:
     t1[1] += f12 * t1[2] + f13 * t1[3] + f14 * t1[4] + q[1]
     t2[2] += dt_s * t2[4] + q[2]
     t0[1], t0[2], t1[0], t1[2], t2[0], t2[1] = n01, n02, n01, n12, n02, n12
-    p[0:8], p[8:16], p[16:24] = t0, t1, t2
-    for i in range(3, N_CAL):
-        k = N_CAL * i
+    p[0:n], p[n:2 * n], p[2 * n:3 * n] = t0, t1, t2
+    for i in range(3, n):
+        k = n * i
         p[k], p[k + 1], p[k + 2] = t0[i], t1[i], t2[i]
         p[k + i] += q[i]
 
 
-def _rows(p: Floats) -> list[list[float]]:
-    return [list(p[i:i + N_CAL]) for i in range(0, N_CAL * N_CAL, N_CAL)]
+def _rows(p: Floats, n: int = N_CAL) -> list[list[float]]:
+    return [list(p[i:i + n]) for i in range(0, n * n, n)]
 
 
 @dataclass(frozen=True, slots=True)
@@ -471,17 +474,20 @@ class WheelGyroEKF:
         self.time_s = t_s
         return x, p
 
-    def extrapolate(self, t_s: float) -> tuple[list[float], list[list[float]]]:
-        """State and covariance (as rows) predicted to t_s, without changing the filter (for publishing)."""
+    def extrapolate(self, t_s: float, block: int = N_CAL) -> tuple[list[float], list[list[float]]]:
+        """State and covariance (as rows) predicted to t_s, without changing the filter (for publishing);
+        with `block` (5 to 8), the covariance of the first `block` states only (ODOMETRY's: PUBLISHED)."""
         x, p = self._load()
+        if block < N_CAL:
+            p = [v for i in range(0, N_CAL * block, N_CAL) for v in p[i:i + block]]
         if self.time_s is None or t_s <= self.time_s:
-            return x, _rows(p)
+            return x, _rows(p, block)
         dt = t_s - self.time_s
         # The pose moves on for at most EXTRAPOLATE_MAX_S past the last measurement (a silent link
         # may be a rebooting autopilot whose motors stopped); the covariance keeps growing.
         scale = max(1.0, dt / MAX_PREDICT_STEP_S)
-        _propagate(x, p, min(dt, EXTRAPOLATE_MAX_S), [q * scale for q in process_noise_diagonal(x, dt)])
-        return x, _rows(p)
+        _propagate(x, p, min(dt, EXTRAPOLATE_MAX_S), [q * scale for q in process_noise_diagonal(x, dt)], block)
+        return x, _rows(p, block)
 
     def restart_motion(self, t_s: float, new_time_s: float | None = None) -> None:
         """After an autopilot reboot: continue from the pose published now, speeds unknown near zero.
