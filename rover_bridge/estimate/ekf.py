@@ -47,8 +47,7 @@ import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
-from itertools import repeat
-from operator import add, mul, sub
+from operator import sub
 from typing import Any
 
 import numpy as np
@@ -547,27 +546,16 @@ class WheelGyroEKF:
         The gain is K = M P H' S^-1 (M the 0/1 mask of estimated states), so x moves by
         M [a b] e. The covariance is Joseph's form, exact for any gain: with G = P H' S^-1 H P =
         a a' + b b', P - K H P - P H' K' + K S K' is P - (M G + G M - M G M): G everywhere but
-        between two considered states, where P stays. The upper triangle is computed and mirrored, so P
-        stays exactly symmetric."""
+        between two considered states, where P stays."""
         m = self._mask
-        n = self.n
-        out = p.copy()
-        # Row i from the diagonal on, and its mirror, column i below the diagonal (in C: map and slices).
+        # Every entry in one pass: a_i a_j = a_j a_i exactly, so a symmetric P stays exactly symmetric.
         if b is None:
             x = [xi + mi * ai * e0 for xi, mi, ai in zip(x, m, a, strict=True)]
-            for i in range(n):
-                k = n * i + i
-                row = list(map(sub, p[k:n * (i + 1)], map(mul, repeat(a[i]), a[i:])))
-                out[k:n * (i + 1)] = row
-                out[k + n::n] = row[1:]
+            out = list(map(sub, p, [ai * aj for ai in a for aj in a]))
         else:
             x = [xi + mi * (ai * e0 + bi * e1) for xi, mi, ai, bi in zip(x, m, a, b, strict=True)]
-            for i in range(n):
-                k = n * i + i
-                row = list(map(sub, p[k:n * (i + 1)], map(add, map(mul, repeat(a[i]), a[i:]),
-                                                           map(mul, repeat(b[i]), b[i:]))))
-                out[k:n * (i + 1)] = row
-                out[k + n::n] = row[1:]
+            out = list(map(sub, p, [ai * aj + bi * bj for ai, bi in zip(a, b, strict=True)
+                                    for aj, bj in zip(a, b, strict=True)]))
         for k in self._fixed:
             out[k] = p[k]
         x[IYAW] = wrap_angle(x[IYAW])
