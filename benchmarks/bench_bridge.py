@@ -962,8 +962,6 @@ def bench_cpu(args: argparse.Namespace) -> None:
         parts = [Bridge(profile, tmp, name, stub=stub) for stub, name in STUBS.items()] if args.parts else []
         under_test = [*bridges(args, profile, tmp), *parts, PlainRouter(tmp)]
         socks = [(udp_socket(), udp_socket()) for _ in under_test]
-        tel = Telemetry()
-        gcs_packer = Packer(GCS_SYS, GCS_COMP)
         samples: list[list[tuple[float, float, float]]] = [[] for _ in under_test]
         stats: list[dict[str, Any]] = []
         all_socks = [s for pair in socks for s in pair]
@@ -971,6 +969,7 @@ def bench_cpu(args: argparse.Namespace) -> None:
             for br, (ap, gcs) in zip(under_test, socks, strict=True):
                 br.wait_up(ap, gcs)
             total = args.warmup_s + args.seconds
+            traffic = replay_frames(total)  # built before the clock starts
             start = time.monotonic()
             measure_at = start + args.warmup_s
             measuring = False
@@ -979,7 +978,7 @@ def bench_cpu(args: argparse.Namespace) -> None:
             # router less CPU for the same tree listed first), so a fixed order favours it.
             pairs = list(zip(under_test, socks, strict=True))
             turn, last_offset = 0, None
-            for offset, what in nominal_schedule(total, 0.0):
+            for offset, _what, to_gcs_port, frame in traffic:
                 if offset != last_offset:
                     turn, last_offset = (turn + 1) % len(pairs), offset
                 target = start + offset
@@ -992,16 +991,6 @@ def bench_cpu(args: argparse.Namespace) -> None:
                         smp.append((time.monotonic(), *br.cpu_split_s()))
                     measuring = True
                 # The same bytes go to every bridge under test (sent one after the other).
-                if what == "REQUEST":
-                    yaw_rate = 0.2 * math.sin(offset)
-                    frame = gcs_packer.pack(body_velocity_request(int(offset * 1000), 0.4, yaw_rate))
-                elif what == "GCS_HEARTBEAT":
-                    frame = gcs_packer.pack(heartbeat_gcs())
-                elif what == "GCS_TIMESYNC":
-                    frame = gcs_packer.pack(mavlink.MAVLink_timesync_message(0, int(offset * 1e9)))
-                else:
-                    frame = tel.frame(what, 100.0 + offset)
-                to_gcs_port = what.startswith("GCS_") or what == "REQUEST"
                 for br, (ap, gcs) in pairs[turn:] + pairs[:turn]:
                     if to_gcs_port:
                         gcs.sendto(frame, br.gcs_addr)
