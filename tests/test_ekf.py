@@ -348,6 +348,8 @@ def test_extrapolation_is_the_matrix_form(seed: int) -> None:
         x5, rows5 = f.extrapolate(dt, PUBLISHED)
         assert x5 == x and rows5 == [row[:PUBLISHED] for row in rows[:PUBLISHED]]
     assert np.array_equal(f.x, x0) and np.array_equal(f.P, p0)  # the filter did not move
+    with pytest.raises(ValueError, match="block"):
+        f.extrapolate(0.01, PUBLISHED - 1)  # x, y, yaw move with v and omega: no block without them
 
 
 @pytest.mark.parametrize("calibrate", [False, True])

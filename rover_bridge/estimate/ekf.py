@@ -476,6 +476,8 @@ class WheelGyroEKF:
     def extrapolate(self, t_s: float, block: int = N_CAL) -> tuple[list[float], list[list[float]]]:
         """State and covariance (as rows) predicted to t_s, without changing the filter (for publishing);
         with `block` (5 to 8), the covariance of the first `block` states only (ODOMETRY's: PUBLISHED)."""
+        if not PUBLISHED <= block <= N_CAL:  # the motion model moves the first five: a smaller block is not one
+            raise ValueError(f"block must be {PUBLISHED} to {N_CAL} states, got {block}")
         x, p = self._load()
         if block < N_CAL:
             p = [v for i in range(0, N_CAL * block, N_CAL) for v in p[i:i + block]]
