@@ -103,11 +103,11 @@ EXTRAPOLATE_MAX_S = 0.2  # publishing: how far past the last measurement the pos
 COAST_S = 0.3  # a rover whose motors lost power stops within about this (distance = speed x this, 1 sigma)
 TRAPEZOID_MAX_DT_S = 0.2  # longer gyro gaps: no trapezoid correction (the rate is not linear over them)
 # A measurement stamped less than this after the state is applied at the state's time, without a
-# prediction; the interval is predicted with the next one, so no time is lost. ATTITUDE, SCALED_IMU and
-# ArduPilot's WHEEL_DISTANCE (1000 * millis()) are stamped in milliseconds: the gyro and wheel readings
-# of one telemetry burst share a millisecond, or differ by one or by the rounding of their units, and
-# each such step was a whole covariance propagation that moved nothing. The trapezoid corrections of
-# yaw and distance are cumulative, so what this defers is made up at the next measurement.
+# prediction; the interval is predicted with the next one, so no time is lost. ATTITUDE and SCALED_IMU
+# are stamped in milliseconds: a wheel reading of the same burst stamped in microseconds (PX4) lands up
+# to a millisecond after the gyro's, and each such step was a whole covariance propagation that moved
+# nothing. (ArduPilot's WHEEL_DISTANCE, 1000 * millis(), is never later than its ATTITUDE.) The
+# trapezoid corrections of yaw and distance are cumulative: what this defers is made up at the next one.
 SAME_INSTANT_S = 1e-3
 
 
@@ -550,7 +550,8 @@ class WheelGyroEKF:
         a a' + b b', P - K H P - P H' K' + K S K' is P - (M G + G M - M G M): G everywhere but
         between two considered states, where P stays."""
         m = self._mask
-        # Every entry in one pass: a_i a_j = a_j a_i exactly, so a symmetric P stays exactly symmetric.
+        # Every entry in one pass: a_i a_j = a_j a_i exactly, so P, exactly symmetric as every writer here
+        # leaves it, stays so.
         if b is None:
             x = [xi + mi * ai * e0 for xi, mi, ai in zip(x, m, a, strict=True)]
             out = list(map(sub, p, [ai * aj for ai in a for aj in a]))
