@@ -26,6 +26,8 @@ from test_process_faults import Gcs, OverrideSpy, WallClockEmulator
 from rover_bridge.app.guard import EXIT_STALLED, LINGER_S, StopGuard
 from rover_bridge.app.systemd import SystemdNotifier
 from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.mavlink.links import Endpoint
+from rover_bridge.mavlink.wire import Link
 from sitl import Emulator, VehicleConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -132,6 +134,68 @@ def test_guard_stops_the_rover_itself_when_the_loop_does_not_respond() -> None:
         assert "did not start its stop" in g.guard.emergency_reason
     finally:
         g.close()
+
+
+class AnsweringAutopilot:
+    """The bridge's real UDP link to an autopilot socket that answers the guard's stop at once, behind a
+    backlog of telemetry the stalled loop never read."""
+
+    def __init__(self, backlog: int, answer: bytes) -> None:
+        self.ap = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.ap.bind(("127.0.0.1", 0))
+        self.ep = Endpoint(f"udpout:127.0.0.1:{self.ap.getsockname()[1]}", Link.AUTOPILOT)
+        self.ep.write_raw(b"hello")
+        _, self.bridge = self.ap.recvfrom(64)
+        mav = mavlink.MAVLink(None, 1, 1)
+        for i in range(backlog):
+            self.ap.sendto(bytes(mavlink.MAVLink_attitude_message(i, 0.1, 0.2, 0.3, 0, 0, 0).pack(mav)), self.bridge)
+        self.answer = answer
+        self.written: list[bytes] = []
+
+    def write_raw(self, data: bytes) -> None:
+        self.ep.write_raw(data)
+        self.written.append(self.ap.recv(65535))
+        self.ap.sendto(self.answer, self.bridge)
+
+    def read_raw(self, size: int) -> bytes:
+        return self.ep.read_raw(size)
+
+    def fileno(self) -> int | None:
+        return self.ep.fileno()
+
+    def close(self) -> None:
+        self.ep.close()
+        self.ap.close()
+
+
+def test_guard_confirms_its_stop_behind_a_backlog_while_the_main_thread_holds_the_gil() -> None:
+    # A stalled loop leaves the autopilot's telemetry unread; the guard reads through it to the answer
+    # while the main thread spins in Python. At CPython's 5 ms GIL hand-over this took 50 datagrams per
+    # LINGER_S, and the stop that landed was reported NOT confirmed.
+    reply = bytes(mavlink.MAVLink_timesync_message(tc1=7, ts1=42).pack(mavlink.MAVLink(None, 1, 1)))
+    link = AnsweringAutopilot(backlog=300, answer=reply)
+    sig_r, sig_w = os.pipe()
+    wake_r, wake_w = os.pipe()
+    exits: list[int] = []
+    guard = StopGuard(sig_r, wake_w, link, confirm_timeout_s=0.3, probe_ts1=42, exit_process=exits.append)
+    guard.frames = b"STOP"
+    switch_s = sys.getswitchinterval()
+    try:
+        guard.start()
+        t0 = time.monotonic()
+        os.write(sig_w, bytes([signal.SIGTERM]))
+        spins = 0
+        while guard.is_alive() and time.monotonic() - t0 < 5.0:
+            spins += 1  # the stuck core: pure Python, never blocking
+        assert link.written == [b"STOP"] and exits == [0]
+        assert guard.confirmed is True, "the stop landed but the answer was not read in time"
+        assert sys.getswitchinterval() == switch_s  # a process that lives on gets its GIL timing back
+    finally:
+        guard.quit()
+        guard.join(timeout=2.0)
+        link.close()
+        for fd in (sig_r, sig_w, wake_r, wake_w):
+            os.close(fd)
 
 
 def test_guard_stops_a_loop_that_stalls_and_exits_1() -> None:

@@ -21,6 +21,7 @@ import contextlib
 import os
 import select
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -30,6 +31,10 @@ from rover_bridge.mavlink.dialect import mavlink
 
 GRACE_S = 0.08  # the loop starts its own stop within this, or the guard does it
 LINGER_S = 0.1  # after an emergency stop: how long to wait for the autopilot's answer before exiting
+# The GIL hand-over time while the guard acts. A stuck main thread holds the GIL, and every read of
+# the guard's gives it up; at CPython's 5 ms default, reading a stalled loop's backlog of 50 datagrams
+# took the whole LINGER_S, so a stop that landed was reported unconfirmed. The process ends next.
+EMERGENCY_SWITCH_S = 1e-4
 DONE_MARGIN_S = 0.3  # the loop's own stop may take its confirmation wait plus this
 # Until the loop's first pass, how often to look; after it, the thread sleeps until the moment a stall
 # would be due (a wake-up costs a companion computer more CPU than its check: no polling).
@@ -62,6 +67,7 @@ class StopGuard(threading.Thread):
         self.frames = b""  # written by the loop, read here: a bytes object is replaced whole
         self.signals: list[int] = []
         self.emergency_reason = ""
+        self.confirmed: bool | None = None  # after an emergency stop: whether the autopilot answered
         self._last_pass_s: float | None = None
         self._stopping = threading.Event()
         self._done = threading.Event()
@@ -143,12 +149,16 @@ class StopGuard(threading.Thread):
         self.emergency_reason = reason
         frames = self.frames
         confirmed = False
+        switch_s = sys.getswitchinterval()
+        sys.setswitchinterval(EMERGENCY_SWITCH_S)
         if frames:
             try:
                 self.link.write_raw(frames)
                 confirmed = self._linger()
             except OSError:
                 pass
+        sys.setswitchinterval(switch_s)  # as it was: only a test's process lives on after this
+        self.confirmed = confirmed if frames else None
         _say(f"rover-bridge: {reason}; stop sent by the guard ({'confirmed' if confirmed else 'NOT confirmed'} "
              f"by the autopilot), exiting {code}\n" if frames else
              f"rover-bridge: {reason}; no vehicle known, nothing to stop; exiting {code}\n")
@@ -160,9 +170,7 @@ class StopGuard(threading.Thread):
         parser.robust_parsing = True
         end = time.monotonic() + LINGER_S
         fd = self.link.fileno()
-        while (left := end - time.monotonic()) > 0.0:
-            if fd is not None:
-                select.select([fd], [], [], min(left, 0.01))
+        while True:
             try:
                 data = self.link.read_raw(4096)
             except OSError:
@@ -170,9 +178,14 @@ class StopGuard(threading.Thread):
             for msg in parser.parse_buffer(data) or []:
                 if msg.get_type() == "TIMESYNC" and msg.tc1 != 0 and msg.ts1 == self.probe_ts1:
                     return True
+            if (left := end - time.monotonic()) <= 0.0:
+                return False
+            if data:  # a backlog is read back to back; wait only when the link had nothing
+                continue
             if fd is None:
-                time.sleep(0.005)
-        return False
+                time.sleep(min(left, 0.005))
+            else:
+                select.select([fd], [], [], min(left, 0.01))
 
 
 def _poke(fd: int) -> None:
