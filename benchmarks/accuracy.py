@@ -81,7 +81,9 @@ def _pwm(wheel_m_s: float, radius_m: float, max_rpm: float) -> int:
 
 def _core(profile: Profile) -> EstimateCore:
     identity = Identity.from_profile(profile)
-    return EstimateCore(profile, identity, Reporter(identity))
+    core = EstimateCore(profile, identity, Reporter(identity))
+    core.defer_fusion = True  # as the running bridge (BridgeCore) has it
+    return core
 
 
 STREAM_RATE_HZ = 20.0

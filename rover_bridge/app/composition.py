@@ -59,6 +59,8 @@ class BridgeCore:
         # hold_gyro False hands each over at once (what the tests compare the held path with).
         self.hold_gyro = True
         self._gyro_held: list[tuple[Incoming, float]] = []
+        # The filter's work waits for a reader (ODOMETRY, mostly): EstimateCore's deferred fusion.
+        self.estimate.defer_fusion = True
 
     def reads(self, link: Link) -> frozenset[int] | None:
         """Message ids the core reads from `link` now (None: all). The shell decodes only these and
@@ -126,6 +128,7 @@ class BridgeCore:
             out.extend(self._heartbeats())
         for sub in self._subcores:
             out.extend(sub.tick(now_s))
+        self.command.set_slipping(self.estimate.slip.slipping)  # the verdict of what was fused in the tick
         return out
 
     def next_deadline_s(self, now_s: float) -> float:
@@ -144,6 +147,7 @@ class BridgeCore:
         """The outputs that may leave early (see next_early_s), the held gyro samples fused first, as in tick."""
         out = self._hand_over_gyro()
         out.extend(self.estimate.odometry_due(now_s))
+        self.command.set_slipping(self.estimate.slip.slipping)
         return out
 
     def shutdown(self, now_s: float) -> list[Outgoing]:

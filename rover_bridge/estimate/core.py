@@ -26,6 +26,17 @@ stamp is the time of the published pose even when the autopilot's clock drifts f
 wheel data through SYSTEM_TIME.time_boot_ms; with neither, now_s (monotonic) in us. TIMESYNC is
 not used (it needs a round trip); ArduPilot re-times external navigation with its own jitter filter
 either way. Stamps jumping back (a reboot) restart the filter's clock from the pose published last.
+
+Deferred fusion (`defer_fusion`, on in the running bridge): what a gyro sample or a wheel reading does to
+the filter is queued, in arrival order with its own stamps and arrival times, and run when anything reads
+the filter (`ekf` and every accessor go through it: ODOMETRY, navigation, a pose reset, LOCAL_POSITION_NED,
+the counters) or FUSE_MAX_DELAY_S after the oldest queued one. The filter then computes exactly what it
+computes eagerly (tested bit for bit); it costs less because 50 Hz of sensor cycles are fused back to back
+in ODOMETRY's 30 Hz passes, where the filter's code is warm, instead of cold in every request's pass. What
+does not wait: the bookkeeping of every message (clock, streams, stale samples, wheel steps and spikes) and
+the measured wheel speeds the command flow's speed loop reads (take_wheel_sample). What waits: the gate's
+verdicts and their STATUSTEXT, and the slip verdict (the command flow's slip compensation sees it at most
+FUSE_MAX_DELAY_S, in practice one ODOMETRY period, later).
 """
 
 from __future__ import annotations
@@ -33,8 +44,9 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from rover_bridge import frames
 from rover_bridge.estimate.anchor import FrameAnchor
@@ -65,6 +77,8 @@ GYRO_MAX_RAD_S = 50.0  # beyond any rover: such a "rate" is corrupt data, not a 
 GYRO_FOR_SLIP_MAX_AGE_S = 0.25
 GYRO_WINDOW_MAX = 64  # gyro samples kept between two wheel steps (the slip test's window)
 WHEELS_STALE_S = 1.0
+# Deferred fusion (see the module docstring): the longest a queued measurement waits for a reader.
+FUSE_MAX_DELAY_S = 0.05
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,7 +121,13 @@ class EstimateCore:
             wheel_noise_fraction=est.wheel_noise_fraction,
             gate_sigma=est.gate_sigma,
         )
-        self.ekf = WheelGyroEKF(robot.track_width_m, self.noise, calibrate=est.calibrate)
+        self._ekf = WheelGyroEKF(robot.track_width_m, self.noise, calibrate=est.calibrate)
+        # Deferred fusion: the filter's work of each measurement, queued (fn, args) in arrival order; the
+        # arrival time of the oldest; what running the queue said (handed out by the next handle or tick).
+        self.defer_fusion = False
+        self._deferred: list[tuple[Callable[..., list[Outgoing] | None], tuple[Any, ...]]] = []
+        self._deferred_since_s = 0.0
+        self._fused_out: list[Outgoing] = []
         self.wheels = WheelInput(profile.encoders, robot)
         self.gyro = GyroSelector(est)
         self.clock = AutopilotClock()
@@ -151,9 +171,49 @@ class EstimateCore:
         self._fixes: deque[tuple[float, float, float, float, float, float]] = deque(maxlen=FIX_HISTORY)
         self._gps: tuple[float, float, float, float] | None = None  # (arrival, stamp, lat, lon)
 
+    # ------------------------------------------------------------------ deferred fusion
+    @property
+    def ekf(self) -> WheelGyroEKF:
+        """The filter, with every queued measurement fused: what anything outside the queue reads."""
+        if self._deferred:
+            self.fuse_deferred()
+        return self._ekf
+
+    @property
+    def fusion_pending(self) -> int:
+        """How many measurements' filter work is queued (deferred fusion)."""
+        return len(self._deferred)
+
+    def fuse_deferred(self) -> None:
+        """Run the queued measurements' filter work, oldest first; what they said waits for the next
+        handle or tick to hand it out."""
+        ops, self._deferred = self._deferred, []
+        for fn, args in ops:
+            said = fn(*args)
+            if said:
+                self._fused_out += said
+
+    def _fuse(self, now_s: float, fn: Callable[..., list[Outgoing] | None], *args: Any) -> list[Outgoing]:
+        """fn(*args) now (what it said), or queued when fusion is deferred."""
+        if self.defer_fusion:
+            if not self._deferred:
+                self._deferred_since_s = now_s
+            self._deferred.append((fn, args))
+            return []
+        return fn(*args) or []
+
+    def _with_fused(self, out: list[Outgoing]) -> list[Outgoing]:
+        """What the queue said since it was last handed out, then out."""
+        if not self._fused_out:
+            return out
+        said, self._fused_out = self._fused_out, []
+        return said + out
+
     # ------------------------------------------------------------------ accessors
     @property
     def counters(self) -> Mapping[str, int]:
+        if self._deferred:
+            self.fuse_deferred()
         out = dict(self._counters)
         out["gyro_switches"] = self.gyro.switches
         out["wheel_slip"] = self.slip.count
@@ -166,6 +226,8 @@ class EstimateCore:
     @property
     def last_gyro(self) -> tuple[float, float] | None:
         """(arrival time, yaw rate CCW rad/s, bias not removed) of the newest fused gyro sample."""
+        if self._deferred:
+            self.fuse_deferred()
         return self._gyro_last
 
     def take_wheel_sample(self) -> MeasuredWheels | None:
@@ -225,6 +287,8 @@ class EstimateCore:
     # ------------------------------------------------------------------ navigation (PoseSource)
     def nav_pose(self, now_s: float) -> Pose2D | None:
         """The pose now for following a target; None without wheel data fused in the last WHEELS_STALE_S."""
+        if self._deferred:
+            self.fuse_deferred()
         fused = self._last_wheel_fused_s
         if fused is None or now_s - fused > WHEELS_STALE_S:
             return None
@@ -302,10 +366,17 @@ class EstimateCore:
             out += self._stamp(msg.time_boot_ms * 1e-3, now_s, "SYSTEM_TIME")[1]
         elif mtype == "COMMAND_ACK":
             return self.streams.handle_ack(msg, now_s)
-        self._remember_pose()
+        if self._deferred:
+            self._deferred.append((self._remember_pose, ()))  # after this message's filter work
+        else:
+            self._remember_pose()
+        if self._fused_out:
+            out = self._with_fused(out)
         return Reaction(out=tuple(out)) if out else NOTHING
 
     def tick(self, now_s: float) -> list[Outgoing]:
+        if self._deferred and now_s >= self._deferred_since_s + FUSE_MAX_DELAY_S:
+            self.fuse_deferred()  # nothing read the filter for that long (no ODOMETRY): its verdicts must out
         self.gyro.update_reads(now_s)  # a source that fell silent: read the others again
         out = self.streams.pump(now_s)
         out += self.streams.check_rates(now_s)
@@ -315,7 +386,7 @@ class EstimateCore:
         st = self.state if self.calibration_reports.enabled and self._have_wheels else None
         if st is not None:
             out += self.calibration_reports.tick(now_s, True, st.track_width_m, st.left_radius_m, st.right_radius_m)
-        return out
+        return self._with_fused(out)
 
     def next_deadline_s(self, now_s: float) -> float:
         # Runs on every turn of the loop: plain comparisons, no lists.
@@ -328,12 +399,16 @@ class EstimateCore:
             if odom < first:
                 first = odom
         cal = self.calibration_reports.next_s
-        return first if cal is None or cal >= first else cal
+        if cal is not None and cal < first:
+            first = cal
+        if self._deferred and self._deferred_since_s + FUSE_MAX_DELAY_S < first:
+            first = self._deferred_since_s + FUSE_MAX_DELAY_S
+        return first
 
     def odometry_due(self, now_s: float) -> list[Outgoing]:
         """ODOMETRY if one is due or may leave early (OdometryPublisher.due): what the shell calls in a
         pass it makes anyway once next_early_s has come. tick publishes only what is due."""
-        return self._publish(now_s, early=True)
+        return self._with_fused(self._publish(now_s, early=True))
 
     def _publish(self, now_s: float, early: bool) -> list[Outgoing]:
         if self._have_wheels and self.frame.ready and self.publisher.due(now_s, early):
@@ -347,8 +422,10 @@ class EstimateCore:
         return self.publisher.early_deadline_s(now_s)
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
-        """Nothing to stop: the estimate flow sends no commands that persist."""
-        return []
+        """Nothing to stop: the estimate flow sends no commands that persist (what the queue says still goes)."""
+        if self._deferred:
+            self.fuse_deferred()
+        return self._with_fused([])
 
     # ------------------------------------------------------------------ pose resets
     def reset_pose(self, pose: Pose2D, now_s: float) -> list[Outgoing]:
@@ -395,25 +472,29 @@ class EstimateCore:
             self._counters["gyro_rejected"] += 1
             return []
         t, out = self._stamp(stamp_s, now_s, source.upper())
-        self._after_silence(t)
         if self.gyro.is_stale(source, t):
             # Fusing a reordered or duplicated sample as the newest rate would also make the EKF's
             # trapezoid yaw correction count the interval since that old stamp twice. Dropped, as
             # WheelInput does for wheels.
             self._counters["gyro_stale"] += 1
-            return out
+            return out + self._fuse(now_s, self._after_silence, t)
         self.gyro.fused(source, t)
         self._counters["gyro_samples"] += 1
-        if not self.ekf.update_gyro(t, omega):
+        return out + self._fuse(now_s, self._fuse_gyro, t, omega, now_s)
+
+    def _fuse_gyro(self, t: float, omega: float, now_s: float) -> list[Outgoing] | None:
+        """A gyro sample's filter work (deferred fusion: see the module docstring)."""
+        self._after_silence(t)
+        if not self._ekf.update_gyro(t, omega):
             self._counters["gyro_rejected"] += 1
-            return out + self.reporter.statustext(
+            return self.reporter.statustext(
                 mavlink.MAV_SEVERITY_WARNING, "gyro sample rejected by gate", now_s, key="gyro gate"
             )
         if len(self._gyro_window) >= GYRO_WINDOW_MAX:  # no wheel step for a long while: keep the newest
             del self._gyro_window[: len(self._gyro_window) - GYRO_WINDOW_MAX + 1]
         self._gyro_window.append(omega)
         self._gyro_last = (now_s, omega)
-        return out
+        return None
 
     def _stamp(self, stamp_s: float, now_s: float, stream: str) -> tuple[float, list[Outgoing]]:
         """The filter time of a measurement: its own autopilot stamp, on the boot clock. A restarted
@@ -422,8 +503,8 @@ class EstimateCore:
         published_t = self.clock.autopilot_time_s(now_s)
         st = self.clock.observe(stamp_s, now_s, stream)
         out: list[Outgoing] = []
-        if st.event == REBOOT and self.ekf.time_s is not None:
-            self.ekf.restart_motion(published_t, new_time_s=st.t_s)
+        if st.event == REBOOT:
+            self._fuse(now_s, self._restart_after_reboot, published_t, st.t_s)
         elif st.event == JUMP:
             self._counters["clock_jumps"] += 1
             if stream not in self._jumps_said and len(self._jumps_said) < 16:
@@ -435,6 +516,11 @@ class EstimateCore:
                                                key=f"clock jump {stream}")
         return st.t_s, out
 
+    def _restart_after_reboot(self, published_t: float, t: float) -> None:
+        """The boot clock restarted: the filter continues from the pose published last, on the new clock."""
+        if self._ekf.time_s is not None:
+            self._ekf.restart_motion(published_t, new_time_s=t)
+
     def _after_silence(self, t: float) -> None:
         """First measurement after every sensor was silent: continue from the pose published meanwhile.
 
@@ -442,8 +528,8 @@ class EstimateCore:
         silence at the old speed now would jump it (a rebooting autopilot's motors stopped). Wheel
         distances, being cumulative, still move it the real distance when they come back.
         """
-        if self.ekf.time_s is not None and t - self.ekf.time_s > SILENCE_S:
-            self.ekf.restart_motion(t)
+        if self._ekf.time_s is not None and t - self._ekf.time_s > SILENCE_S:
+            self._ekf.restart_motion(t)
 
     def _handle_wheels(self, msg: MAVLinkMessage, now_s: float) -> list[Outgoing]:
         published_t = self.clock.autopilot_time_s(now_s)  # before a restarted clock re-learns its offset
@@ -453,14 +539,8 @@ class EstimateCore:
         self.streams.arrival("WHEEL_DISTANCE", now_s)
         kind = step.kind
         if kind in (StepKind.BASELINE, StepKind.REBOOT, StepKind.RESYNC):
-            if kind is StepKind.REBOOT and self.ekf.time_s is not None:
-                # Continue from the pose published last (no jump), on the restarted boot clock; the
-                # silence is not dead-reckoned.
-                self.ekf.restart_motion(published_t, new_time_s=t)
-            self.ekf.predict_to(t)
-            self.ekf.wheel_baseline()
+            out += self._fuse(now_s, self._wheel_baseline, kind is StepKind.REBOOT, published_t, t)
             self._have_wheels = True
-            self._gyro_window.clear()
             if kind is StepKind.REBOOT:
                 self.streams.restart(now_s)
                 out += self.resets.reboot(step.reason, now_s)
@@ -472,6 +552,29 @@ class EstimateCore:
             )
         if kind is not StepKind.STEP:
             return out
+        robot = self.profile.robot
+        d_left_m, d_right_m, dt_s = step.d_left_m, step.d_right_m, step.dt_s
+        # The command flow's speed loop reads these at once, whether or not fusion waits.
+        self._wheel_sample = MeasuredWheels(t, WheelSpeeds(d_left_m / dt_s / robot.left_radius_m,
+                                                           d_right_m / dt_s / robot.right_radius_m))
+        ds = 0.5 * (d_left_m + d_right_m)
+        self.raw_pose = arc_step(self.raw_pose, ds, (d_right_m - d_left_m) / self.track_width_m)
+        return out + self._fuse(now_s, self._fuse_wheels, t, d_left_m, d_right_m, dt_s, now_s)
+
+    def _wheel_baseline(self, reboot: bool, published_t: float, t: float) -> None:
+        """A wheel reading that starts a new baseline (the first, a reboot, a resync): the filter's part."""
+        if reboot and self._ekf.time_s is not None:
+            # Continue from the pose published last (no jump), on the restarted boot clock; the
+            # silence is not dead-reckoned.
+            self._ekf.restart_motion(published_t, new_time_s=t)
+        self._ekf.predict_to(t)
+        self._ekf.wheel_baseline()
+        self._gyro_window.clear()
+
+    def _fuse_wheels(self, t: float, d_left_m: float, d_right_m: float, dt_s: float,
+                     now_s: float) -> list[Outgoing]:
+        """A wheel step's filter work (deferred fusion: see the module docstring), with the gyro samples
+        fused since the last step as the slip test's window."""
         self._after_silence(t)
         gyro_mean: float | None = None
         window = self._gyro_window
@@ -481,20 +584,14 @@ class EstimateCore:
             gyro_mean = sum(window) / len(window)
             gyro_spread = 0.5 * (max(window) - min(window))
         self._gyro_window = window[-1:]  # the last sample also bounds the next interval
-        robot = self.profile.robot
-        self._wheel_sample = MeasuredWheels(t, WheelSpeeds(step.d_left_m / step.dt_s / robot.left_radius_m,
-                                                           step.d_right_m / step.dt_s / robot.right_radius_m))
-        ds = 0.5 * (step.d_left_m + step.d_right_m)
-        self.raw_pose = arc_step(self.raw_pose, ds, (step.d_right_m - step.d_left_m) / self.track_width_m)
-        res = self.ekf.update_wheels(t, step.d_left_m, step.d_right_m, step.dt_s, gyro_mean, gyro_spread)
+        res = self._ekf.update_wheels(t, d_left_m, d_right_m, dt_s, gyro_mean, gyro_spread)
         if res.stationary:
             self._counters["wheel_stationary"] += 1
         if not res.accepted:
             self._counters["wheel_rejected"] += 1
         else:
             self._last_wheel_fused_s = now_s
-        out += self.slip.interval(res.slip, now_s)
-        return out
+        return self.slip.interval(res.slip, now_s)
 
     # ------------------------------------------------------------------ output
     def odometry_time_usec(self, now_s: float) -> int:
@@ -528,14 +625,15 @@ class EstimateCore:
 
     def _remember_pose(self) -> None:
         """The filter's pose at its time, for _pose_at_stamp (anchoring, targets tied to an older fix)."""
-        t = self.ekf.time_s
+        ekf = self._ekf  # run in order after the queue's work (handle), never a reason to run it
+        t = ekf.time_s
         if t is None:
             return
         if self._recent and t < self._recent[-1][0]:
             self._recent.clear()  # the filter's clock restarted (a reboot): older poses are another epoch
             self._fixes.clear()
         if not self._recent or t > self._recent[-1][0]:
-            self._recent.append((t, self.ekf.pose))
+            self._recent.append((t, ekf.pose))
 
     def _odometry(self, now_s: float) -> list[Outgoing]:
         msg = self.odometry_message(now_s)
