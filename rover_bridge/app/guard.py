@@ -151,13 +151,14 @@ class StopGuard(threading.Thread):
         confirmed = False
         switch_s = sys.getswitchinterval()
         sys.setswitchinterval(EMERGENCY_SWITCH_S)
-        if frames:
-            try:
+        try:
+            if frames:
                 self.link.write_raw(frames)
                 confirmed = self._linger()
-            except OSError:
-                pass
-        sys.setswitchinterval(switch_s)  # as it was: only a test's process lives on after this
+        except OSError:
+            pass
+        finally:
+            sys.setswitchinterval(switch_s)  # as it was: only a test's process lives on after this
         self.confirmed = confirmed if frames else None
         _say(f"rover-bridge: {reason}; stop sent by the guard ({'confirmed' if confirmed else 'NOT confirmed'} "
              f"by the autopilot), exiting {code}\n" if frames else

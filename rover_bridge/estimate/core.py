@@ -175,8 +175,7 @@ class EstimateCore:
     @property
     def ekf(self) -> WheelGyroEKF:
         """The filter, with every queued measurement fused: what anything outside the queue reads."""
-        if self._deferred:
-            self.fuse_deferred()
+        self.fuse_deferred()
         return self._ekf
 
     @property
@@ -185,8 +184,10 @@ class EstimateCore:
         return len(self._deferred)
 
     def fuse_deferred(self) -> None:
-        """Run the queued measurements' filter work, oldest first; what they said waits for the next
-        handle or tick to hand it out."""
+        """Run the queued measurements' filter work, oldest first (nothing if none); what they said waits
+        for the next handle or tick to hand it out."""
+        if not self._deferred:
+            return
         ops, self._deferred = self._deferred, []
         for fn, args in ops:
             said = fn(*args)
@@ -212,8 +213,7 @@ class EstimateCore:
     # ------------------------------------------------------------------ accessors
     @property
     def counters(self) -> Mapping[str, int]:
-        if self._deferred:
-            self.fuse_deferred()
+        self.fuse_deferred()
         out = dict(self._counters)
         out["gyro_switches"] = self.gyro.switches
         out["wheel_slip"] = self.slip.count
@@ -226,8 +226,7 @@ class EstimateCore:
     @property
     def last_gyro(self) -> tuple[float, float] | None:
         """(arrival time, yaw rate CCW rad/s, bias not removed) of the newest fused gyro sample."""
-        if self._deferred:
-            self.fuse_deferred()
+        self.fuse_deferred()
         return self._gyro_last
 
     def take_wheel_sample(self) -> MeasuredWheels | None:
@@ -287,8 +286,7 @@ class EstimateCore:
     # ------------------------------------------------------------------ navigation (PoseSource)
     def nav_pose(self, now_s: float) -> Pose2D | None:
         """The pose now for following a target; None without wheel data fused in the last WHEELS_STALE_S."""
-        if self._deferred:
-            self.fuse_deferred()
+        self.fuse_deferred()
         fused = self._last_wheel_fused_s
         if fused is None or now_s - fused > WHEELS_STALE_S:
             return None
@@ -423,8 +421,7 @@ class EstimateCore:
 
     def shutdown(self, now_s: float) -> list[Outgoing]:
         """Nothing to stop: the estimate flow sends no commands that persist (what the queue says still goes)."""
-        if self._deferred:
-            self.fuse_deferred()
+        self.fuse_deferred()
         return self._with_fused([])
 
     # ------------------------------------------------------------------ pose resets
