@@ -132,3 +132,32 @@ def test_the_pure_python_checksum_agrees_with_fastcrc(monkeypatch: pytest.Monkey
     monkeypatch.setattr(framing, "_mcrf4xx", None)
     assert [crc_ok(f) for f in frames] == fast
     assert fast.count(True) == len(SAMPLES) - 1  # the originals pass, every altered copy fails
+
+
+@settings(max_examples=400, deadline=None)
+@given(datagram=streams(), buffered=st.sampled_from([b"", b"\x00", SAMPLES[0][:5]]))
+def test_a_whole_frame_datagram_skips_the_buffer_and_nothing_else(datagram: bytes, buffered: bytes) -> None:
+    """Framer.whole (a listening UDP link's shortcut) takes a datagram exactly when feed() then next()
+    would give that datagram back as one good frame and nothing left; it counts the same bytes."""
+    fast, slow = Framer(), Framer()
+    for framer in (fast, slow):
+        framer.feed(buffered)
+    frame = fast.whole(datagram)
+    slow.feed(datagram)
+    items = []
+    while (item := slow.next()) is not None:
+        items.append(item)
+    one_good_frame = not buffered and items == [(True, datagram)] and slow.buffered == 0
+    assert (frame is not None) == one_good_frame
+    if frame is None:
+        assert (fast.bytes_fed, fast.bytes_in_frames) == (len(buffered), 0)  # untouched: the caller feeds it
+    else:
+        assert frame is datagram
+        assert (fast.bytes_fed, fast.bytes_in_frames, fast.bytes_bad, fast.buffered) == (
+            slow.bytes_fed, slow.bytes_in_frames, slow.bytes_bad, slow.buffered)
+
+
+def test_every_sample_frame_is_whole() -> None:
+    for frame in SAMPLES:
+        assert Framer().whole(frame) is frame
+        assert Framer().whole(frame + b"\x00") is None and Framer().whole(frame[:-1]) is None

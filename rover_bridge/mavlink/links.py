@@ -191,12 +191,16 @@ class Endpoint:
                     break  # nothing new arrived and no complete frame is buffered
                 if conn.first_byte:
                     conn.auto_mavlink_version(data)  # as recv_msg: may swap conn.mav (MAVLink 1 peer)
-                framer.feed(data)
-                continue
-            good, frame = item
-            if not good:
-                self.rx_bad += 1
-                continue
+                # A datagram that is one whole frame (bytes, from the socket) skips the framer's buffer.
+                frame = framer.whole(data) if udp is not None else None
+                if frame is None:
+                    framer.feed(data)
+                    continue
+            else:
+                good, frame = item
+                if not good:
+                    self.rx_bad += 1
+                    continue
             if wanted is not None and msg_id(frame) not in wanted:
                 if crc_ok(frame):
                     self.rx_frames += 1
