@@ -560,10 +560,8 @@ class EstimateCore:
 
     def _wheel_baseline(self, reboot: bool, published_t: float, t: float) -> None:
         """A wheel reading that starts a new baseline (the first, a reboot, a resync): the filter's part."""
-        if reboot and self._ekf.time_s is not None:
-            # Continue from the pose published last (no jump), on the restarted boot clock; the
-            # silence is not dead-reckoned.
-            self._ekf.restart_motion(published_t, new_time_s=t)
+        if reboot:  # continue from the pose published last (no jump); the silence is not dead-reckoned
+            self._restart_after_reboot(published_t, t)
         self._ekf.predict_to(t)
         self._ekf.wheel_baseline()
         self._gyro_window.clear()

@@ -47,6 +47,19 @@ def crc_ok(frame: bytes) -> bool:
     return value == frame[end] | frame[end + 1] << 8
 
 
+def _frame_length(buf: bytes | bytearray) -> int:
+    """The length of the frame that starts `buf` (a start marker, at least 3 bytes): header, payload,
+    CRC and, when flagged, the signature."""
+    if buf[0] == V2:
+        return buf[1] + HEADER_V2 + 2 + (SIGNATURE_LEN if buf[2] & SIGNED else 0)
+    return buf[1] + HEADER_V1 + 2
+
+
+def _bad_flags(buf: bytes | bytearray) -> bool:
+    """A MAVLink 2 frame with an incompatibility flag this parser does not know: bad as a whole."""
+    return buf[0] == V2 and bool(buf[2] & ~SIGNED)
+
+
 class Framer:
     """Bytes in (datagrams or pieces of a stream), whole frames and bad-data runs out.
 
@@ -73,16 +86,11 @@ class Framer:
         """`data` itself when it is exactly one good frame and nothing is buffered (a UDP datagram from
         an autopilot, nearly always), counted as feed() then next() would count it; None otherwise:
         then feed() it. The busiest path of a link, without the copy into the buffer and out again."""
-        if self._buf or len(data) < 3:
-            return None
-        magic = data[0]
-        if magic == V2:
-            flags = data[2]
-            if flags & ~SIGNED or len(data) != data[1] + HEADER_V2 + 2 + (SIGNATURE_LEN if flags else 0):
-                return None
-        elif magic != V1 or len(data) != data[1] + HEADER_V1 + 2:
+        if self._buf or len(data) < 3 or (data[0] != V2 and data[0] != V1):
             return None
         n = len(data)
+        if _frame_length(data) != n or _bad_flags(data):
+            return None
         self.bytes_fed += n
         self.bytes_in_frames += n
         return data
@@ -100,13 +108,10 @@ class Framer:
             return self._take(end, good=False)
         if len(buf) < 3:
             return None
-        if magic == V2:
-            length = buf[1] + HEADER_V2 + 2 + (SIGNATURE_LEN if buf[2] & SIGNED else 0)
-        else:
-            length = buf[1] + HEADER_V1 + 2
+        length = _frame_length(buf)
         if len(buf) < length:
             return None
-        return self._take(length, good=not (magic == V2 and buf[2] & ~SIGNED))
+        return self._take(length, good=not _bad_flags(buf))
 
     def _take(self, n: int, good: bool) -> tuple[bool, bytes]:
         if n == len(self._buf):  # the usual datagram: exactly one frame
