@@ -48,7 +48,7 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from operator import sub
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -308,32 +308,118 @@ _XS = struct.Struct(f"{N_CAL}d")
 _PS = struct.Struct(f"{N_CAL * N_CAL}d")
 
 
-def _propagate(x: list[float], p: list[float], dt_s: float, q: Floats, n: int = N_CAL) -> None:
+def _propagate(kernel: EkfKernel, x: list[float], p: list[float], dt_s: float, q: list[float], n: int = N_CAL
+               ) -> None:
     """x = fx(x, dt_s) and P = F P F' + diag(q), in place, p the row-major n x n covariance: all of it, or
     the block of the first n >= 5 states (x, y, yaw, v, omega: F moves nothing else, so that block of
-    F P F' is computed from that block of P alone, with the same operations as in the whole).
-
-    F is the identity but for 7 entries (F_jacobian), so F P changes the rows x, y, yaw only and
-    (F P) F' their columns only: about 60 products instead of two 8 x 8 matrix products. The block
-    of x, y, yaw is taken from its upper triangle and the columns from the rows, so P stays exactly
-    symmetric."""
+    F P F' is computed from that block of P alone, with the same operations as in the whole)."""
     x[IX], x[IY], x[IYAW], f02, f12, f03, f13, f04, f14 = _motion_step(x[IX], x[IY], x[IYAW], x[IV], x[IW], dt_s)
-    r2, r3, r4 = p[2 * n:3 * n], p[3 * n:4 * n], p[4 * n:5 * n]
-    t0 = [a + f02 * b + f03 * c + f04 * d for a, b, c, d in zip(p[0:n], r2, r3, r4, strict=True)]
-    t1 = [a + f12 * b + f13 * c + f14 * d for a, b, c, d in zip(p[n:2 * n], r2, r3, r4, strict=True)]
-    t2 = [b + dt_s * d for b, d in zip(r2, r4, strict=True)]
-    n01 = t0[1] + f12 * t0[2] + f13 * t0[3] + f14 * t0[4]
-    n02 = t0[2] + dt_s * t0[4]
-    n12 = t1[2] + dt_s * t1[4]
-    t0[0] += f02 * t0[2] + f03 * t0[3] + f04 * t0[4] + q[0]
-    t1[1] += f12 * t1[2] + f13 * t1[3] + f14 * t1[4] + q[1]
-    t2[2] += dt_s * t2[4] + q[2]
-    t0[1], t0[2], t1[0], t1[2], t2[0], t2[1] = n01, n02, n01, n12, n02, n12
-    p[0:n], p[n:2 * n], p[2 * n:3 * n] = t0, t1, t2
-    for i in range(3, n):
-        k = n * i
-        p[k], p[k + 1], p[k + 2] = t0[i], t1[i], t2[i]
-        p[k + i] += q[i]
+    kernel.propagate_cov(p, n, f02, f12, f03, f13, f04, f14, dt_s, q)
+
+
+class EkfKernel(Protocol):
+    """The filter's covariance arithmetic: PythonKernel, or the same in C (NATIVE_KERNEL, module docstring).
+    Lists of floats in and out, row-major matrices; the functions may change their list arguments."""
+
+    def propagate_cov(self, p: list[float], n: int, f02: float, f12: float, f03: float, f13: float, f04: float,
+                      f14: float, dt_s: float, q: list[float], /) -> None: ...
+
+    def column_sum(self, p: list[float], n: int, i: int, j: int, c: float, /) -> list[float]: ...
+
+    def wheel_columns(self, p: list[float], hv3: float, hv4: float, hv6: float, hv7: float, hw3: float,
+                      hw4: float, hw6: float, hw7: float, /) -> tuple[list[float], list[float]]: ...
+
+    def whiten(self, u: list[float], w: list[float], c00: float, c10: float, c11: float, /
+               ) -> tuple[list[float], list[float]]: ...
+
+    def fuse(self, x: list[float], p: list[float], mask: list[float], fixed: list[int], a: list[float], e0: float,
+             b: list[float] | None, e1: float, /) -> tuple[list[float], list[float]]: ...
+
+
+class PythonKernel:
+    """The reference kernel, in Python: what every platform runs without a C compiler, and what the C
+    kernel is held to bit for bit (same operations, same order)."""
+
+    @staticmethod
+    def propagate_cov(p: list[float], n: int, f02: float, f12: float, f03: float, f13: float, f04: float,
+                      f14: float, dt_s: float, q: list[float], /) -> None:
+        """P = F P F' + diag(q), in place; F is the identity but for 7 entries (F_jacobian: f02 = F[x, yaw],
+        f13 = F[y, v], ..., and F[yaw, omega] = dt_s), so F P changes the rows x, y, yaw only and (F P) F'
+        their columns only: about 60 products instead of two 8 x 8 matrix products. The block of x, y,
+        yaw is taken from its upper triangle and the columns from the rows, so P stays exactly symmetric."""
+        r2, r3, r4 = p[2 * n:3 * n], p[3 * n:4 * n], p[4 * n:5 * n]
+        t0 = [a + f02 * b + f03 * c + f04 * d for a, b, c, d in zip(p[0:n], r2, r3, r4, strict=True)]
+        t1 = [a + f12 * b + f13 * c + f14 * d for a, b, c, d in zip(p[n:2 * n], r2, r3, r4, strict=True)]
+        t2 = [b + dt_s * d for b, d in zip(r2, r4, strict=True)]
+        n01 = t0[1] + f12 * t0[2] + f13 * t0[3] + f14 * t0[4]
+        n02 = t0[2] + dt_s * t0[4]
+        n12 = t1[2] + dt_s * t1[4]
+        t0[0] += f02 * t0[2] + f03 * t0[3] + f04 * t0[4] + q[0]
+        t1[1] += f12 * t1[2] + f13 * t1[3] + f14 * t1[4] + q[1]
+        t2[2] += dt_s * t2[4] + q[2]
+        t0[1], t0[2], t1[0], t1[2], t2[0], t2[1] = n01, n02, n01, n12, n02, n12
+        p[0:n], p[n:2 * n], p[2 * n:3 * n] = t0, t1, t2
+        for i in range(3, n):
+            k = n * i
+            p[k], p[k + 1], p[k + 2] = t0[i], t1[i], t2[i]
+            p[k + i] += q[i]
+
+    @staticmethod
+    def column_sum(p: list[float], n: int, i: int, j: int, c: float, /) -> list[float]:
+        """(P[:, i] + P[:, j]) / c: the gyro's P H' / sqrt(S) (H picks omega and bias)."""
+        return [(u + v) / c for u, v in zip(p[i::n], p[j::n], strict=True)]
+
+    @staticmethod
+    def wheel_columns(p: list[float], hv3: float, hv4: float, hv6: float, hv7: float, hw3: float, hw4: float,
+                      hw6: float, hw7: float, /) -> tuple[list[float], list[float]]:
+        """The wheels' P H' as two columns: H's rows are zero but at v, omega and the two geometry states."""
+        n = N_CAL
+        u = [p[k + IV] * hv3 + p[k + IW] * hv4 + p[k + IKT] * hv6 + p[k + IKR] * hv7 for k in range(0, n * n, n)]
+        w = [p[k + IV] * hw3 + p[k + IW] * hw4 + p[k + IKT] * hw6 + p[k + IKR] * hw7 for k in range(0, n * n, n)]
+        return u, w
+
+    @staticmethod
+    def whiten(u: list[float], w: list[float], c00: float, c10: float, c11: float, /
+               ) -> tuple[list[float], list[float]]:
+        """The columns [u w] times C^-T, C = [[c00, 0], [c10, c11]] the Cholesky factor of S."""
+        a = [ui / c00 for ui in u]
+        return a, [(wi - c10 * ai) / c11 for wi, ai in zip(w, a, strict=True)]
+
+    @staticmethod
+    def fuse(x: list[float], p: list[float], mask: list[float], fixed: list[int], a: list[float], e0: float,
+             b: list[float] | None, e1: float, /) -> tuple[list[float], list[float]]:
+        """x + M [a b] e and P - (a a' + b b') but at the `fixed` entries (WheelGyroEKF._fuse says why).
+        Every entry in one pass: a_i a_j = a_j a_i exactly, so P, exactly symmetric as every writer here
+        leaves it, stays so."""
+        if b is None:
+            x = [xi + mi * ai * e0 for xi, mi, ai in zip(x, mask, a, strict=True)]
+            out = list(map(sub, p, [ai * aj for ai in a for aj in a]))
+        else:
+            x = [xi + mi * (ai * e0 + bi * e1) for xi, mi, ai, bi in zip(x, mask, a, b, strict=True)]
+            out = list(map(sub, p, [ai * aj + bi * bj for ai, bi in zip(a, b, strict=True)
+                                    for aj, bj in zip(a, b, strict=True)]))
+        for k in fixed:
+            out[k] = p[k]
+        return x, out
+
+
+def _native_kernel() -> EkfKernel | None:
+    """The C kernel, where the install built it (pyproject.toml: a C compiler was found); else None."""
+    try:
+        from rover_bridge.estimate import _ekf_kernel
+    except ImportError:
+        return None
+    return _ekf_kernel
+
+
+PYTHON_KERNEL: EkfKernel = PythonKernel()
+NATIVE_KERNEL: EkfKernel | None = _native_kernel()
+DEFAULT_KERNEL: EkfKernel = NATIVE_KERNEL if NATIVE_KERNEL is not None else PYTHON_KERNEL
+
+
+def kernel_name(kernel: EkfKernel) -> str:
+    """"native" (C) or "python": what the stats and the start-up log say."""
+    return "python" if isinstance(kernel, PythonKernel) else "native"
 
 
 def _rows(p: Floats, n: int = N_CAL) -> list[list[float]]:
@@ -369,12 +455,13 @@ class WheelGyroEKF:
     """
 
     def __init__(self, track_width_m: float, noise: NoiseModel | None = None, calibrate: bool = False,
-                 pose: Pose2D | None = None) -> None:
+                 pose: Pose2D | None = None, kernel: EkfKernel | None = None) -> None:
         if not (math.isfinite(track_width_m) and track_width_m > 0.0):
             raise ValueError(f"track_width_m must be a finite number > 0, got {track_width_m!r}")
         self.track_width_m = float(track_width_m)
         self.noise = noise if noise is not None else NoiseModel()
         self.calibrate = calibrate
+        self.kernel = kernel if kernel is not None else DEFAULT_KERNEL
         n = N_CAL  # geometry states always: estimated with calibrate, considered without
         self.n = n
         self._consider: list[int] = [] if calibrate else [IKT, IKR]
@@ -465,9 +552,10 @@ class WheelGyroEKF:
         dt = total / steps
         self.predict_steps += steps
         x, p = self._load()
+        kernel = self.kernel
         for _ in range(steps):
             v, w = x[IV], x[IW]
-            _propagate(x, p, dt, process_noise_diagonal(x, dt))
+            _propagate(kernel, x, p, dt, process_noise_diagonal(x, dt))
             self._turned_since_gyro_rad += w * dt
             self._moved_since_wheels_m += v * dt
         self.time_s = t_s
@@ -487,7 +575,8 @@ class WheelGyroEKF:
         # The pose moves on for at most EXTRAPOLATE_MAX_S past the last measurement (a silent link
         # may be a rebooting autopilot whose motors stopped); the covariance keeps growing.
         scale = max(1.0, dt / MAX_PREDICT_STEP_S)
-        _propagate(x, p, min(dt, EXTRAPOLATE_MAX_S), [q * scale for q in process_noise_diagonal(x, dt)], block)
+        _propagate(self.kernel, x, p, min(dt, EXTRAPOLATE_MAX_S), [q * scale for q in process_noise_diagonal(x, dt)],
+                   block)
         return x, _rows(p, block)
 
     def restart_motion(self, t_s: float, new_time_s: float | None = None) -> None:
@@ -532,7 +621,7 @@ class WheelGyroEKF:
         self.rejects_in_row[sensor] += 1
         return False
 
-    def _fuse(self, x: list[float], p: list[float], a: Floats, e0: float, b: Floats | None = None,
+    def _fuse(self, x: list[float], p: list[float], a: list[float], e0: float, b: list[float] | None = None,
               e1: float = 0.0) -> tuple[list[float], list[float]]:
         """EKF update of (x, P) in floats, for a measurement of one or two rows given in whitened form:
         with S = H P H' + R = C C' (C lower triangular, Cholesky), the columns [a b] of P H' C^-T and
@@ -549,20 +638,9 @@ class WheelGyroEKF:
         M [a b] e. The covariance is Joseph's form, exact for any gain: with G = P H' S^-1 H P =
         a a' + b b', P - K H P - P H' K' + K S K' is P - (M G + G M - M G M): G everywhere but
         between two considered states, where P stays."""
-        m = self._mask
-        # Every entry in one pass: a_i a_j = a_j a_i exactly, so P, exactly symmetric as every writer here
-        # leaves it, stays so.
-        if b is None:
-            x = [xi + mi * ai * e0 for xi, mi, ai in zip(x, m, a, strict=True)]
-            out = list(map(sub, p, [ai * aj for ai in a for aj in a]))
-        else:
-            x = [xi + mi * (ai * e0 + bi * e1) for xi, mi, ai, bi in zip(x, m, a, b, strict=True)]
-            out = list(map(sub, p, [ai * aj + bi * bj for ai, bi in zip(a, b, strict=True)
-                                    for aj, bj in zip(a, b, strict=True)]))
-        for k in self._fixed:
-            out[k] = p[k]
+        x, p = self.kernel.fuse(x, p, self._mask, self._fixed, a, e0, b, e1)
         x[IYAW] = wrap_angle(x[IYAW])
-        return x, out
+        return x, p
 
     def _gyro_innovation(self, x: Floats, p: Floats, omega_rad_s: float) -> tuple[float, float, float]:
         """(y, S, d2) of a gyro sample: H = d(omega + bias)/dx picks two states, so all of it is scalar."""
@@ -581,7 +659,7 @@ class WheelGyroEKF:
         # H picks omega and bias: P H' is the sum of their two columns.
         n = self.n
         c = math.sqrt(S)
-        x, p = self._fuse(x, p, [(u + v) / c for u, v in zip(p[IW::n], p[IB::n], strict=True)], y / c)
+        x, p = self._fuse(x, p, self.kernel.column_sum(p, n, IW, IB, c), y / c)
         # Trapezoid: the prediction turned at piecewise-constant rates, while the body's rate moved
         # from the last gyro sample's to this one's. Without this every change of yaw rate leaves a
         # heading error of (change x half a sample period), 1.3 deg per spin at 20 Hz.
@@ -668,8 +746,7 @@ class WheelGyroEKF:
         # P H': H is zero but at v, omega and the two geometry states.
         hv3, hv4, hv6, hv7 = hv[IV], hv[IW], hv[IKT], hv[IKR]
         hw3, hw4, hw6, hw7 = hw[IV], hw[IW], hw[IKT], hw[IKR]
-        u = [p[k + IV] * hv3 + p[k + IW] * hv4 + p[k + IKT] * hv6 + p[k + IKR] * hv7 for k in range(0, n * n, n)]
-        w = [p[k + IV] * hw3 + p[k + IW] * hw4 + p[k + IKT] * hw6 + p[k + IKR] * hw7 for k in range(0, n * n, n)]
+        u, w = self.kernel.wheel_columns(p, hv3, hv4, hv6, hv7, hw3, hw4, hw6, hw7)
         s00 = hv3 * u[IV] + hv4 * u[IW] + hv6 * u[IKT] + hv7 * u[IKR] + r00
         s01 = hv3 * w[IV] + hv4 * w[IW] + hv6 * w[IKT] + hv7 * w[IKR] + r01
         s11 = hw3 * w[IV] + hw4 * w[IW] + hw6 * w[IKT] + hw7 * w[IKR] + r11
@@ -691,8 +768,8 @@ class WheelGyroEKF:
             self._store(x, p)
             self._moved_since_wheels_m = 0.0  # the next interval starts at this reading
             return WheelUpdate(False, slip, stationary, slip_d2, d2)
-        a = [ui / c00 for ui in u]
-        x, p = self._fuse(x, p, a, e0, [(wi - c10 * ai) / c11 for wi, ai in zip(w, a, strict=True)], e1)
+        a, b = self.kernel.whiten(u, w, c00, c10, c11)
+        x, p = self._fuse(x, p, a, e0, b, e1)
         v_now = x[IV]
         prev = self._wheels_prev
         missed: float | None = None

@@ -125,6 +125,9 @@ def main(args: argparse.Namespace) -> int:
     end = None if args.duration is None else start + args.duration
     log.warning("rover-bridge running: autopilot %s, gcs %s, profile %s", args.autopilot,
                 ", ".join(gcs_urls) or "none", args.params)
+    if ekf.NATIVE_KERNEL is None:
+        log.warning("EKF: the C kernel was not built at install (no C compiler or Python headers?): its Python "
+                    "kernel runs instead, the same numbers for more CPU (README, Performance)")
     notifier.ready()
     code = 0
     confirmed: bool | None = None
@@ -172,6 +175,7 @@ def write_stats(path: str, runner: Runner, verifier: SignatureVerifier | None = 
         "statustext_suppressed": dict(core.reporter.limiter.suppressed),
         "security": dict(core.gate.counters),
         "signatures": dict(verifier.counters) if verifier is not None else {},
+        "ekf_kernel": ekf.kernel_name(ekf.DEFAULT_KERNEL),
     }
     with open(path, "w", encoding="utf-8") as f:
         json.dump(stats, f, indent=1, default=str)
