@@ -8,6 +8,7 @@ there is nothing to compare).
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -187,6 +188,8 @@ def test_a_long_drive_with_slip_and_standstill_is_the_same_on_either_kernel() ->
 def test_the_filter_chooses_the_c_kernel_by_default_and_state_stays_in_filterpy_arrays() -> None:
     f = WheelGyroEKF(0.3)
     assert f.kernel is ekf.DEFAULT_KERNEL is NATIVE_KERNEL
+    assert isinstance(NATIVE_KERNEL, ekf.NativeKernel)
+    assert copy.deepcopy(f).kernel is NATIVE_KERNEL  # a copied filter (tests copy whole cores) shares it
     x_array, p_array = f.x, f.P
     f.update_gyro(1.0, 0.1)
     f.update_gyro(1.02, 0.2)

@@ -403,13 +403,34 @@ class PythonKernel:
         return x, out
 
 
+class NativeKernel:
+    """The C kernel (_ekf_kernel.c) as an EkfKernel: its module's functions. A filter holds this rather than
+    the module, which cannot be deep-copied (tests copy whole cores); a kernel is stateless, so every copy
+    of a filter shares it."""
+
+    def __init__(self) -> None:
+        from rover_bridge.estimate import _ekf_kernel as k  # ImportError where the install did not build it
+
+        self.propagate_cov = k.propagate_cov
+        self.column_sum = k.column_sum
+        self.wheel_columns = k.wheel_columns
+        self.whiten = k.whiten
+        self.fuse = k.fuse
+
+    def __copy__(self) -> NativeKernel:
+        return self
+
+    def __deepcopy__(self, memo: dict[int, object]) -> NativeKernel:
+        return self
+
+
 def _native_kernel() -> EkfKernel | None:
     """The C kernel, where the install built it (pyproject.toml: a C compiler was found); else None."""
     try:
-        from rover_bridge.estimate import _ekf_kernel
+        kernel: EkfKernel = NativeKernel()
     except ImportError:
         return None
-    return _ekf_kernel
+    return kernel
 
 
 PYTHON_KERNEL: EkfKernel = PythonKernel()
