@@ -29,7 +29,10 @@ EXTRAPOLATE_MAX_S past the last measurement, and restart_motion continues from t
 
 Every model is a pure function of (x, dt) so tests can check the Jacobians by finite differences.
 These matrix forms are the reference: the filter runs the same models in floats (WheelGyroEKF), and
-the tests hold the two together and to filterpy's update.
+the tests hold the two together and to filterpy's update. The filter's covariance arithmetic (F P F',
+P H', the update of x and P) goes through a kernel: PythonKernel, or the same operations in the same
+order in C (_ekf_kernel.c, NativeKernel) where the install built it, equal to the bit (tests hold the two
+together); everything else, the filter's logic, is Python once.
 
 filterpy's ExtendedKalmanFilter holds the state (x, P); importing it imports scipy (filterpy's
 package and its stats module do), 0.45 s of a 0.7 s start. So it is imported on first use, or,
