@@ -1,27 +1,28 @@
 """Deadline and budget accounting for the loop's periodic outputs (pure: times in, counts and texts out).
 
 The outputs accounted: the wheel overrides (RC_CHANNELS_OVERRIDE, or DO_SET_SERVO in servo mode), ODOMETRY
-and the bridge's HEARTBEAT, each with its period. For each output sent, the shell gives three times on one
-clock: when the core decided it (the `now_s` it was given), when the frame was written, and when the loop's
-pass began (its wake-up).
+and the bridge's HEARTBEAT, each with its period. For each output the shell gives the time its first frame
+was written and the time the loop's pass that wrote it began (its wake-up), on one clock.
 
-When an output is due (its grid, as the cores keep it): the first one starts a grid; each next grid point is
-the previous one plus the period. An output decided at d is the output of grid point g (the next point) when
-d >= g - early_s (early_s: how far ahead an output may leave and still count as that point's; ODOMETRY
-may leave half a period early in a pass made anyway, the others never). One decided before that is off the
-grid (an answer to a request, a state change): it starts a new grid at d + period and is never late. One
-decided a period or more after g also starts a new grid (the cores restart theirs after a stall rather than
-bursting the missed outputs).
+Scheduled time: each output has a grid, as the cores keep theirs. The first output starts it; the next
+grid point is the previous one plus the period. An output written at w is grid point g's (the next point)
+when w >= g - early_s (early_s: how far ahead an output may leave and still count as that point's: ODOMETRY
+may leave half a period early in a pass made anyway, the others never). One written before that is off the
+grid (an answer to a request, a state change): it starts a new grid at w + period and is never late. One
+written a period or more after g is g's, and the grid restarts at w + period (the cores restart theirs
+after a stall rather than bursting the missed outputs). Only written times count, so the same accounting
+of the frames as they arrive (a benchmark, an autopilot's log, a .tlog's stamps) finds the same outputs late.
 
-Late: an output of grid point g written more than deadline_fraction of the period after g. Not the loop's
-lateness, and so not counted: an output a pass after g did not send (the core had nothing to send then:
-ODOMETRY before the estimate is ready, or a pause): the loop was on time, its producer was not due.
-Over budget: the pass that sent the output worked (wake-up to the written frame) longer than
+Late: an output written more than deadline_fraction of the period after its grid point. Not the loop's
+lateness, and so not counted: an output that a pass begun after its grid point did not send (its core had
+nothing to send then: ODOMETRY before the estimate is ready, or a pause): the loop was on time.
+Over budget: the pass that wrote the output worked (wake-up to the written frame) longer than
 budget_fraction of the period, whether or not the output was on the grid.
 
 The ground station hears of late outputs when they start (at the first one), at most once per
-report_window_s while they go on, and when a whole window has passed without one:
-"RB: overrides late: 7 in 10 s, worst 31 ms" ... "RB: overrides on time again: 12 late in 34 s".
+report_window_s while they go on (the count and the worst over the last window), and when a whole window
+has passed without one: "RB: overrides late: 7 in 10 s, worst 31 ms" ... "RB: overrides on time again:
+12 late in 34 s".
 """
 
 from __future__ import annotations
@@ -88,9 +89,9 @@ class OutputTiming:
         self.worst_work_s = 0.0
         self.interval_late_s = self.interval_work_s = 0.0  # the same since the last log line
 
-    def record(self, decided_s: float, sent_s: float, pass_s: float,
-               previous_pass_s: float = -math.inf) -> float | None:
-        """Account one output; returns how far past its grid point it was written (None: not a grid point's)."""
+    def record(self, sent_s: float, pass_s: float, previous_pass_s: float = -math.inf) -> float | None:
+        """Account one output written at sent_s in a pass that began at pass_s (after one that began at
+        previous_pass_s); returns how far past its grid point it was written (None: not a grid point's)."""
         self.sent += 1
         work_s = sent_s - pass_s
         self.worst_work_s = max(self.worst_work_s, work_s)
@@ -99,10 +100,10 @@ class OutputTiming:
             self.over_budget += 1
         g = self.next_s
         period = self.period_s
-        if g is None or decided_s < g - self.schedule.early_s - GRID_TOLERANCE_S:
-            self.next_s = decided_s + period  # first, or off the grid: a new grid
+        if g is None or sent_s < g - self.schedule.early_s - GRID_TOLERANCE_S:
+            self.next_s = sent_s + period  # first, or off the grid: a new grid
             return None
-        self.next_s = g + period if decided_s - g < period else decided_s + period
+        self.next_s = g + period if sent_s - g < period else sent_s + period
         if previous_pass_s >= g:
             return None  # a pass after its grid point did not send it: its core held it back, the loop was on time
         self.on_grid += 1
@@ -186,11 +187,11 @@ class Deadlines:
     def pass_began(self, now_s: float) -> None:
         self._previous_pass_s, self._pass_s = self._pass_s, now_s
 
-    def sent(self, name: str, decided_s: float, sent_s: float) -> None:
+    def sent(self, name: str, sent_s: float) -> None:
         out = self.outputs.get(name)
         if out is None:
             return
-        late_s = out.record(decided_s, sent_s, self._pass_s, self._previous_pass_s)
+        late_s = out.record(sent_s, self._pass_s, self._previous_pass_s)
         if late_s is not None and late_s > out.deadline_s:
             self.episodes[name].late(sent_s, late_s)
             self._next_poll_s = min(self._next_poll_s, sent_s)
@@ -253,7 +254,7 @@ def from_log(profile: Profile, written: Iterable[tuple[str, float]]) -> dict[str
         if out is None or at_s - last.get(name, -math.inf) < SAME_OUTPUT_S:
             continue
         last[name] = at_s
-        out.record(at_s, at_s, at_s)
+        out.record(at_s, at_s)
     return outputs
 
 

@@ -154,11 +154,11 @@ class Runner:
         ticked = now_s >= deadline
         if ticked:
             self.ticks += 1
-            self.send_all(self.core.tick(now_s), now_s)
+            self.send_all(self.core.tick(now_s), account=True)
         if now_s >= self.core.next_early_s(now_s):
             # Awake anyway: an output that may leave early goes now rather than waking the loop later.
             self.early_ticks += 1
-            self.send_all(self.core.early_tick(now_s), now_s)
+            self.send_all(self.core.early_tick(now_s), account=True)
             ticked = True
         self.next_deadline_s = self.core.next_deadline_s(now_s) if ticked else deadline
         self._report_timing(now_s)
@@ -192,15 +192,21 @@ class Runner:
                 other.queue_frame(frame)
             self.forwarded += len(self._forward_to[ep])
         if reaction.out:
-            self.send_all(reaction.out, now_s)
+            self.send_all(reaction.out, account=True)
 
-    def send_all(self, out: Sequence[Outgoing], decided_s: float | None = None) -> None:
-        """Send the core's messages; with `decided_s` (the time the core was given), the periodic outputs
-        among them are accounted (rover_bridge.app.deadlines), each once however many frames it takes."""
+    def send_all(self, out: Sequence[Outgoing], account: bool = False) -> None:
+        """Send the core's messages; with `account`, the periodic outputs among them are accounted
+        (rover_bridge.app.deadlines), each once however many frames it takes, at its first frame."""
         accounted: tuple[str, ...] = ()
         for item in out:
             dests = [self.autopilot] if item.dest is Link.AUTOPILOT else self.gcs
+            name = output_of(item.msg) if account and not self._stopped else None
             for ep in dests:
+                # The time read just before the write: on loopback a write wakes the reader, which may take the
+                # CPU before the write returns (a busy machine: for milliseconds), so a time read after it could
+                # count a frame late that left on time. A test stepping a simulated clock: the pass's time.
+                clock = self._sent_clock
+                written_s = self._pass_s if name is None or clock is None else clock()
                 try:
                     frame = ep.send(item.msg, item.src_system, item.src_component)
                 except PACK_ERRORS as exc:
@@ -209,14 +215,12 @@ class Runner:
                     self.pack_errors += 1
                     log.error("could not pack %s: %s", item.msg.get_type(), exc)
                     break
+                if name is not None and name not in accounted:
+                    self.timing.sent(name, written_s)
+                    accounted += (name,)
+                name = None
                 if self.tlog is not None and ep is dests[0]:
                     self.tlog.write(frame)
-            if decided_s is not None and not self._stopped:
-                name = output_of(item.msg)
-                if name is not None and name not in accounted:
-                    accounted += (name,)
-                    clock = self._sent_clock
-                    self.timing.sent(name, decided_s, self._pass_s if clock is None else clock())
 
     def wait(self, clock: Callable[[], float], extra_fds: Sequence[int] = ()) -> list[Endpoint]:
         """Sleep until a link is readable, an extra fd (signal wake-up) is, or the next deadline.
