@@ -154,11 +154,13 @@ def test_deadlines_log_a_line_per_interval_warning_only_when_something_was_late(
     assert line[1].startswith("timing over 60 s: overrides 2 sent, 0 late (worst 10.0 ms past schedule), "
                               "0 over budget (worst 10.0 ms)")
     d.pass_began(61.0)
-    d.sent(OVERRIDES, 61.0)  # 59.9 s after its grid point (1.10): late
-    assert d.poll(61.0) == [(4, "timing.overrides.late", "RB: overrides late: 1 in 10 s, worst 59900 ms")]
+    d.sent(OVERRIDES, 61.01)  # 59.91 s after its grid point (1.10): late, said by the pass that wrote it
+    assert d.poll(61.0) == [(4, "timing.overrides.late", "RB: overrides late: 1 in 10 s, worst 59910 ms")]
+    assert d.poll(61.05) == []
     line = d.log_line(120.0)
     assert line is not None and line[0] and "overrides 1 sent, 1 late" in line[1]
-    assert d.poll(71.0) == [(5, "timing.overrides.ok", "RB: overrides on time again: 1 late in 10 s")]
+    assert d.poll(71.0) == []  # a window after the late one: 71.01
+    assert d.poll(71.01) == [(5, "timing.overrides.ok", "RB: overrides on time again: 1 late in 10 s")]
     assert d.log_line(170.0) is None
     off = profile_from_dict({"timing": {"log_interval_s": 0.0}})
     quiet = Deadlines(off, schedules(off))

@@ -19,10 +19,10 @@ nothing to send then: ODOMETRY before the estimate is ready, or a pause): the lo
 Over budget: the pass that wrote the output worked (wake-up to the written frame) longer than
 budget_fraction of the period, whether or not the output was on the grid.
 
-The ground station hears of late outputs when they start (at the first one), at most once per
-report_window_s while they go on (the count and the worst over the last window), and when a whole window
-has passed without one: "RB: overrides late: 7 in 10 s, worst 31 ms" ... "RB: overrides on time again:
-12 late in 34 s".
+The ground station hears of late outputs when they start (at the first one), while they go on at most
+once per report_window_s and only when more came (the count and the worst over the last window), and
+when a whole window has passed without one: "RB: overrides late: 7 in 10 s, worst 31 ms" ...
+"RB: overrides on time again: 12 late in 34 s".
 """
 
 from __future__ import annotations
@@ -135,14 +135,17 @@ class LateEpisodes:
         self._recent: deque[tuple[float, float]] = deque()  # (when, how late) within the last window
         self._since_s: float | None = None  # the episode's first late output
         self._count = 0  # late outputs in the episode
-        self._next_report_s = math.inf
+        self._next_report_s = math.inf  # inf: nothing new to say
+        self._reported_s = -math.inf
 
     def late(self, now_s: float, late_s: float) -> None:
         self._recent.append((now_s, late_s))
         self._count += 1
         if self._since_s is None:
             self._since_s = now_s
-            self._next_report_s = now_s  # said at once
+            self._next_report_s = -math.inf  # said at the next poll
+        elif self._next_report_s == math.inf:  # news since the last report: the next one a window after it
+            self._next_report_s = self._reported_s + self.window_s
 
     def poll(self, name: str, now_s: float) -> str | None:
         recent = self._recent
@@ -157,7 +160,7 @@ class LateEpisodes:
             return text
         if now_s < self._next_report_s:
             return None
-        self._next_report_s = now_s + self.window_s
+        self._reported_s, self._next_report_s = now_s, math.inf  # until another one comes
         worst_ms = max(late for _, late in recent) * 1e3
         return f"RB: {name} late: {len(recent)} in {self.window_s:.0f} s, worst {worst_ms:.0f} ms"
 
@@ -194,7 +197,7 @@ class Deadlines:
         late_s = out.record(sent_s, self._pass_s, self._previous_pass_s)
         if late_s is not None and late_s > out.deadline_s:
             self.episodes[name].late(sent_s, late_s)
-            self._next_poll_s = min(self._next_poll_s, sent_s)
+            self._next_poll_s = -math.inf  # the pass that wrote it says so
 
     def poll(self, now_s: float) -> list[tuple[int, str, str]]:
         """The ground station's texts due now as (severity, rate-limit key, text); cheap when none is."""
