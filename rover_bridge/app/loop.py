@@ -154,11 +154,11 @@ class Runner:
         ticked = now_s >= deadline
         if ticked:
             self.ticks += 1
-            self.send_all(self.core.tick(now_s), account=True)
+            self.send_all(self.core.tick(now_s))
         if now_s >= self.core.next_early_s(now_s):
             # Awake anyway: an output that may leave early goes now rather than waking the loop later.
             self.early_ticks += 1
-            self.send_all(self.core.early_tick(now_s), account=True)
+            self.send_all(self.core.early_tick(now_s))
             ticked = True
         self.next_deadline_s = self.core.next_deadline_s(now_s) if ticked else deadline
         self._report_timing(now_s)
@@ -192,15 +192,15 @@ class Runner:
                 other.queue_frame(frame)
             self.forwarded += len(self._forward_to[ep])
         if reaction.out:
-            self.send_all(reaction.out, account=True)
+            self.send_all(reaction.out)
 
-    def send_all(self, out: Sequence[Outgoing], account: bool = False) -> None:
-        """Send the core's messages; with `account`, the periodic outputs among them are accounted
-        (rover_bridge.app.deadlines), each once however many frames it takes, at its first frame."""
+    def send_all(self, out: Sequence[Outgoing]) -> None:
+        """Send the core's messages. The periodic outputs among them are accounted (rover_bridge.app.deadlines)
+        until the stop begins, each once however many frames it takes, at its first frame."""
         accounted: tuple[str, ...] = ()
         for item in out:
             dests = [self.autopilot] if item.dest is Link.AUTOPILOT else self.gcs
-            name = output_of(item.msg) if account and not self._stopped else None
+            name = None if self._stopped else output_of(item.msg)
             for ep in dests:
                 # The time read just before the write: on loopback a write wakes the reader, which may take the
                 # CPU before the write returns (a busy machine: for milliseconds), so a time read after it could
