@@ -244,6 +244,25 @@ class SafetyParams:
 
 
 @dataclass(frozen=True, slots=True)
+class TimingParams:
+    budget_fraction: float = _p(
+        0.8, "Each periodic output (overrides, ODOMETRY, heartbeats): the work of the pass that sends it "
+        "(wake-up to the frame written) should take at most this fraction of its period; longer passes are "
+        "counted (over_budget).", lo=0.0, lo_open=True, hi=1.0)
+    deadline_fraction: float = _p(
+        0.95, "Each periodic output must leave within this fraction of its period after its scheduled time "
+        "on its grid (the previous one's scheduled time plus the period); later ones are counted as late and "
+        "reported to the ground station (STATUSTEXT) while it lasts.", lo=0.0, lo_open=True, hi=1.0)
+    report_window_s: float = _p(
+        10.0, "Late outputs are reported when they start, at most once per this window while they go on "
+        "(with the count over it), and as over once a whole window passes without one.", unit="s",
+        lo=1.0, hi=600.0)
+    log_interval_s: float = _p(
+        60.0, "How often the loop logs its timing (outputs sent, late, over budget, worst): INFO, WARNING if "
+        "any output was late; 0 disables.", unit="s", lo=0.0, hi=86400.0)
+
+
+@dataclass(frozen=True, slots=True)
 class MavlinkParams:
     vehicle_system_id: int = _p(0, "The vehicle's system id; 0 learns it from the autopilot's heartbeat.",
                                 lo=0, hi=255)
@@ -348,6 +367,7 @@ class Profile:
     control: ControlParams = field(default_factory=ControlParams)
     encoders: EncoderParams = field(default_factory=EncoderParams)
     safety: SafetyParams = field(default_factory=SafetyParams)
+    timing: TimingParams = field(default_factory=TimingParams)
     mavlink: MavlinkParams = field(default_factory=MavlinkParams)
     estimator: EstimatorParams = field(default_factory=EstimatorParams)
     odometry: OdometryParams = field(default_factory=OdometryParams)
@@ -503,6 +523,10 @@ def _cross_checks(p: Profile, bad: frozenset[str] = frozenset()) -> list[str]:
     if (checkable("command.rate_hz", "safety.heartbeat_timeout_s")
             and 1.0 / p.command.rate_hz >= p.safety.heartbeat_timeout_s):
         problems.append("command.rate_hz: outputs must refresh faster than safety.heartbeat_timeout_s")
+    tm = p.timing
+    if checkable("timing.budget_fraction", "timing.deadline_fraction") and tm.budget_fraction > tm.deadline_fraction:
+        problems.append(f"timing: budget_fraction {tm.budget_fraction} is past deadline_fraction "
+                        f"{tm.deadline_fraction}: the work must fit before the deadline")
     for i, src in enumerate(p.security.allowed_sources):
         parts = src.split(":")
         ok = len(parts) == 2 and parts[0].isdigit() and 0 < int(parts[0]) <= 255 and (

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rover_bridge.app import deadlines
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.errors import ConfigError
 from rover_bridge.mavlink.dialect import mavlink, mavutil
@@ -68,6 +69,7 @@ class ReplayResult:
     autopilot_frames: int
     counters: dict[str, int]
     calibration: str
+    timing: str = ""  # the bridge's own outputs against their deadlines, from the log's stamps
 
     def summary(self) -> str:
         if not self.rows:
@@ -90,6 +92,8 @@ class ReplayResult:
                          f"max |dyaw| {math.degrees(d[1]):.3f} deg over {d[2]} matched rows")
         if self.calibration:
             lines.append(f"calibration                 {self.calibration}")
+        if self.timing:
+            lines.append(f"timing (log stamps)         {self.timing}")
         interesting = {k: v for k, v in sorted(self.counters.items()) if v}
         if interesting:
             lines.append("estimator counters          " + ", ".join(f"{k}={v}" for k, v in interesting.items()))
@@ -132,6 +136,7 @@ def replay(path: str | Path, profile: Profile) -> ReplayResult:
     live: list[OdometryRow] = []
     frames = ap_frames = 0
     clock: float | None = None
+    written: list[tuple[str, float]] = []  # the bridge's own periodic outputs, as the log stamped them
 
     def tick(at_s: float, early: bool) -> None:
         # Where the live loop published, ODOMETRY may have left early (in a pass it made anyway).
@@ -143,6 +148,8 @@ def replay(path: str | Path, profile: Profile) -> ReplayResult:
         frames += 1
         t = float(msg._timestamp)
         if msg.get_srcComponent() == own_comp:
+            if (output := deadlines.output_of(msg)) is not None:
+                written.append((output, t))
             if msg.get_type() == "ODOMETRY":
                 live.append(OdometryRow.from_message(msg))
                 if ticks_from_log:
@@ -161,7 +168,9 @@ def replay(path: str | Path, profile: Profile) -> ReplayResult:
             ap_frames += 1
             core.estimate.handle(Incoming(Link.AUTOPILOT, msg), t)
     calibration = getattr(core.estimate, "calibration_report", lambda: "")()
-    return ReplayResult(tuple(rows), tuple(live), frames, ap_frames, dict(core.estimate.counters), str(calibration))
+    timing = deadlines.summary_line(deadlines.from_log(profile, written))
+    return ReplayResult(tuple(rows), tuple(live), frames, ap_frames, dict(core.estimate.counters), str(calibration),
+                        timing)
 
 
 def _from_autopilot(core: BridgeCore, msg: Any) -> bool:

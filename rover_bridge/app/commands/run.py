@@ -172,6 +172,7 @@ def write_stats(path: str, runner: Runner, verifier: SignatureVerifier | None = 
                    "early_ticks": runner.early_ticks, "pack_errors": runner.pack_errors,
                    "passes": runner.passes},
         "links": {ep.url: {"rx": ep.rx_frames, "rx_bad": ep.rx_bad, "tx": ep.tx_frames} for ep in runner.endpoints},
+        "timing": runner.timing.stats(),
         "statustext_suppressed": dict(core.reporter.limiter.suppressed),
         "security": dict(core.gate.counters),
         "signatures": dict(verifier.counters) if verifier is not None else {},
