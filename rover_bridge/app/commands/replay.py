@@ -5,13 +5,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from rover_bridge.app.commands import add_params_argument
+
 NAME = "replay"
 HELP = "run the estimator over a recorded .tlog; write pose, velocity and covariance as CSV and print a summary"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="a .tlog recorded by `rover-bridge run --tlog` (or MAVProxy)")
-    parser.add_argument("--params", default="params/default.toml", help="robot profile (default %(default)s)")
+    add_params_argument(parser)
     parser.add_argument("--csv", default=None, metavar="PATH", help="output CSV (default: LOG with .csv)")
     parser.add_argument("--plot", default=None, metavar="PATH", help="also draw the replayed path (needs matplotlib)")
 
