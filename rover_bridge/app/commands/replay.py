@@ -15,7 +15,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="a .tlog recorded by `rover-bridge run --tlog` (or MAVProxy)")
     add_params_argument(parser)
     parser.add_argument("--csv", default=None, metavar="PATH", help="output CSV (default: LOG with .csv)")
-    parser.add_argument("--plot", default=None, metavar="PATH", help="also draw the replayed path (needs matplotlib)")
+    parser.add_argument("--plot", default=None, metavar="PATH",
+                        help="also draw the replayed path here (needs matplotlib); 'none' (the default): no picture")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -28,7 +29,7 @@ def main(args: argparse.Namespace) -> int:
     write_csv(result.rows, csv_path)
     print(result.summary())
     print(f"csv: {csv_path} ({len(result.rows)} rows)")
-    if args.plot:
+    if args.plot and args.plot.lower() != "none":
         try:
             import matplotlib
 
