@@ -57,9 +57,11 @@ def test_demo_leaves_no_process_behind_when_interrupted(tmp_path: Path) -> None:
     import signal
     import time
 
+    # SIGINT as a terminal leaves it (default): a harness started in the background (`cmd &` in a script)
+    # passes SIGINT ignored to its children, and then the demo would never see the Ctrl-C below.
     proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "demo", "--quick", "--plot", "none"],
                             cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         # Let it get the two children running, then Ctrl-C it as a terminal would.
         deadline = time.monotonic() + 60
