@@ -37,13 +37,13 @@ def step_wall(emu: Emulator, elapsed_s: float) -> None:
     messages due in it, stamped at their own simulated time: the bridge sees the same sensor streams at any
     load, only later. One long step would send one sample of each stream for the whole gap (a gyro sample per
     200 ms in a turn is a heading error of degrees)."""
-    remaining = max(0.001, elapsed_s)
-    steps = 0
-    while remaining > 1e-9:
-        dt = min(WALL_STEP_S, remaining) if steps * WALL_STEP_S < CATCH_UP_S else remaining
-        emu.step(dt)
-        remaining -= dt
-        steps += 1
+    remaining_us = max(1000, round(elapsed_s * 1e6))  # whole microseconds: the emulator's own time unit
+    step_us, caught_up_us = round(WALL_STEP_S * 1e6), 0
+    while remaining_us > 0:
+        dt_us = min(step_us, remaining_us) if caught_up_us < CATCH_UP_S * 1e6 else remaining_us
+        emu.step(dt_us / 1e6)
+        remaining_us -= dt_us
+        caught_up_us += dt_us
 
 
 class _Closable(Protocol):
