@@ -16,7 +16,7 @@ import pytest
 
 from rover_bridge.app.demo import free_udp_port
 from rover_bridge.errors import LinkError
-from rover_bridge.mavlink.links import Endpoint
+from rover_bridge.mavlink.links import Endpoint, open_problem
 from rover_bridge.mavlink.wire import Link
 
 REPO = Path(__file__).resolve().parents[1]
@@ -118,3 +118,21 @@ def test_a_silent_autopilot_is_said_once_and_a_normal_start_is_info(tmp_path: Pa
                          "is it running and listening at that address (e.g. SITL's or mavlink-router's udpin)?"], \
         done.stderr
     assert sum("no HEARTBEAT" in ln for ln in lines) == 1
+
+
+@pytest.mark.parametrize(("url", "role", "exc", "says"), [
+    ("/dev/ttyAMA0,921600", Link.AUTOPILOT, PermissionError(13, "Permission denied"),
+     "permission denied: add this user to the dialout group (sudo usermod -aG dialout $USER, then log in again)"),
+    ("/dev/ttyUSB0,57600", Link.GCS, FileNotFoundError(2, "No such file or directory"),
+     "no such device: is the radio plugged in and powered, and is the name right? (ls /dev/serial/by-id/)"),
+    ("tcp:rover.local:5760", Link.AUTOPILOT, socket.gaierror(-2, "Name or service not known"),
+     "unknown host: check the address given with --autopilot"),
+    ("udpin:10.9.9.9:14550", Link.GCS, OSError(99, "Cannot assign requested address"),
+     "not an address of this machine: listen on 0.0.0.0 or on one of its addresses"),
+    ("/dev/ttyACM0,115200", Link.AUTOPILOT, ModuleNotFoundError("No module named 'serial'"),
+     "serial links need pyserial (pip install pyserial)"),
+])
+def test_what_each_open_failure_says(url: str, role: Link, exc: BaseException, says: str) -> None:
+    """The failures this machine cannot provoke (root opens any device; no DNS), by the error the OS gives."""
+    what = "autopilot" if role is Link.AUTOPILOT else "ground-station"
+    assert open_problem(url, role, exc) == f"cannot open the {what} link {url}: {says}"

@@ -92,7 +92,8 @@ def open_problem(url: str, role: Link, exc: BaseException) -> str:
     if code == errno.EADDRNOTAVAIL:
         return f"{head}: not an address of this machine: listen on 0.0.0.0 or on one of its addresses"
     if code == errno.ENOENT:
-        return (f"{head}: no such device: is the autopilot plugged in and powered, and is the name right? "
+        device = "autopilot" if role is Link.AUTOPILOT else "radio"
+        return (f"{head}: no such device: is the {device} plugged in and powered, and is the name right? "
                 "(ls /dev/serial/by-id/)")
     if code in (errno.EBUSY, errno.EAGAIN):
         return (f"{head}: the device is busy: another program holds it (MAVProxy, ModemManager, another "
