@@ -617,13 +617,37 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "<profile>") -> Pro
     return profile
 
 
+# The profiles shipped with the package (package data, one copy: params/ in a clone links to these).
+PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
+
+
+def packaged_profiles() -> list[str]:
+    """Names of the packaged profiles (``default``, ``ardupilot-sitl-skid``): what ``--params NAME`` takes."""
+    return sorted(p.stem for p in PROFILES_DIR.glob("*.toml"))
+
+
+def find_profile(name_or_path: str | Path) -> Path:
+    """The file a ``--params`` value means: the path itself when it exists, else for a bare name
+    (``default``, ``default.toml``: no directory part) the packaged profile of that name, so the
+    default works from any working directory and in any install."""
+    path = Path(name_or_path)
+    if path.exists() or path.parent != Path("."):
+        return path
+    packaged = PROFILES_DIR / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
+    return packaged if packaged.is_file() else path
+
+
 def load_profile(path: str | Path) -> Profile:
-    """Read and validate a TOML profile; ConfigError lists every problem with its key path."""
-    path = Path(path)
+    """Read and validate a TOML profile (a path or a packaged profile's name, ``find_profile``);
+    ConfigError lists every problem with its key path."""
+    given = path
+    path = find_profile(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ConfigError([f"{path}: cannot read profile: {exc.strerror or exc}"]) from exc
+        hint = (f" (packaged profiles: {', '.join(packaged_profiles())}; `rover-bridge init {given}` writes one "
+                "to start from)") if isinstance(exc, FileNotFoundError) else ""
+        raise ConfigError([f"{given}: cannot read profile: {exc.strerror or exc}{hint}"]) from exc
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -647,17 +671,17 @@ def profile_to_toml(profile: Profile) -> str:
             lines.append(f"# {info.name} = (unset){unit}")
         else:
             comment = f"  # {info.spec.unit}" if info.spec.unit else ""
-            lines.append(f"{info.name} = {_toml_value(value)}{comment}")
+            lines.append(f"{info.name} = {toml_value(value)}{comment}")
     return "\n".join(lines) + "\n"
 
 
-def _toml_value(value: Any) -> str:
+def toml_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(value, tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
     return repr(value)
 
 
@@ -665,7 +689,7 @@ def markdown_table() -> str:
     """The README's parameter reference, generated from the declarations."""
     rows = ["| key | type | unit | default | valid | meaning |", "|---|---|---|---|---|---|"]
     for info in iter_params():
-        default = "unset" if info.default is None else _toml_value(info.default)
+        default = "unset" if info.default is None else toml_value(info.default)
         type_name = info.type_name + (" (optional)" if info.optional else "")
         rows.append(f"| `{info.path}` | {type_name} | {info.spec.unit} | `{default}` | {info.range_text} | "
                     f"{info.spec.help} |")

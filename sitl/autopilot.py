@@ -63,6 +63,7 @@ from sitl.config import VehicleConfig
 from sitl.extnav import ExtNavConsumer, ExtNavSettings
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.physics import PhysicsState, encoder_counts, pwm_to_command
+from sitl.sensors import G_M_S2, accel_reading_m_s2, fitted, wire_int
 
 # Rover/mode.h Mode::Number: the custom_mode values Rover reports (there are no modes 2, 13, 14).
 MODE_MANUAL = 0
@@ -561,7 +562,7 @@ class Autopilot:
             ok = self._set_mode(int(p1), int(p2))
             result = _P.MAV_RESULT_ACCEPTED if ok else _P.MAV_RESULT_FAILED
         elif command == _P.MAV_CMD_DO_SET_SERVO:
-            result = self._do_set_servo(int(p1), int(p2), now_us)
+            result = self._do_set_servo(wire_int(p1, "uint8_t"), wire_int(p2, "uint16_t"), now_us)  # C's casts
         elif command == _P.MAV_CMD_SET_MESSAGE_INTERVAL:
             result = self._set_message_interval(int(p1), p2)
         elif command == _P.MAV_CMD_REQUEST_MESSAGE:
@@ -701,6 +702,7 @@ class Autopilot:
             out.append(counts[wheel] * 2.0 * math.pi * radius / param_cpr)
         return out[0], out[1]
 
+    @fitted  # every field saturates at its wire type's range, as the C conversions on the autopilot do
     def build(self, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMessage:
         """Build one message of a stream from the current state."""
         boot_ms = self.time_boot_ms(now_us)
@@ -723,10 +725,11 @@ class Autopilot:
         if msg_id == _P.MAVLINK_MSG_ID_ATTITUDE:
             return m.attitude_encode(boot_ms, 0.0, 0.0, self.heading_rad(s), 0.0, 0.0, s.gyro_rad_s)
         if msg_id in (_P.MAVLINK_MSG_ID_RAW_IMU, _P.MAVLINK_MSG_ID_SCALED_IMU):
-            # mG and mrad/s in FRD: x forward, y right, z down (gravity reads -1 g).
-            ax = round(s.accel_m_s2 / 9.80665 * 1000.0)
-            ay = round(s.v_m_s * s.yaw_rate_rad_s / 9.80665 * 1000.0)
-            gz = round(s.gyro_rad_s * 1000.0)
+            # mG and mrad/s in FRD: x forward, y right, z down (gravity reads -1 g); the accelerometer
+            # saturates at +-16 g, the gyro (already in its range) at int16 in mrad/s (sitl/sensors.py).
+            ax = accel_reading_m_s2(s.accel_m_s2) / G_M_S2 * 1000.0
+            ay = accel_reading_m_s2(s.v_m_s * s.yaw_rate_rad_s) / G_M_S2 * 1000.0
+            gz = s.gyro_rad_s * 1000.0
             if msg_id == _P.MAVLINK_MSG_ID_RAW_IMU:
                 return m.raw_imu_encode(boot_us, ax, ay, -1000, 0, 0, gz, 0, 0, 0)
             return m.scaled_imu_encode(boot_ms, ax, ay, -1000, 0, 0, gz, 0, 0, 0)
@@ -758,8 +761,8 @@ class Autopilot:
                 lat_deg, lon_deg = self._lat_lon_of(*(ext if ext is not None else (s.x_m, s.y_m)))
             vn, ve = s.v_m_s * math.cos(s.yaw_rad), s.v_m_s * math.sin(s.yaw_rad)
             hdg = round(math.degrees(self.heading_rad(s)) * 100.0) % 36000
-            return m.global_position_int_encode(boot_ms, round(lat_deg * 1e7), round(lon_deg * 1e7), 584_000, 0,
-                                                round(vn * 100.0), round(ve * 100.0), 0, hdg)
+            return m.global_position_int_encode(boot_ms, lat_deg * 1e7, lon_deg * 1e7, 584_000, 0,
+                                                vn * 100.0, ve * 100.0, 0, hdg)
         if msg_id == _P.MAVLINK_MSG_ID_SIMSTATE:
             lat_deg, lon_deg = self._lat_lon(s)
             lateral_m_s2 = s.v_m_s * s.yaw_rate_rad_s
@@ -773,8 +776,8 @@ class Autopilot:
                 0.0,
                 0.0,
                 s.yaw_rate_rad_s,
-                round(lat_deg * 1e7),
-                round(lon_deg * 1e7),
+                lat_deg * 1e7,
+                lon_deg * 1e7,
             )
         raise ValueError(f"cannot build message id {msg_id}")
 

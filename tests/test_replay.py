@@ -59,3 +59,12 @@ def test_replay_of_a_missing_log_is_a_clear_error(tmp_path: Path, capsys: pytest
     assert cli_main(["replay", str(tmp_path / "nope.tlog"), "--params",
                      str(Path(__file__).resolve().parents[1] / "params" / "default.toml")]) == 2
     assert "no such log" in capsys.readouterr().err
+
+
+def test_replay_plot_none_draws_nothing_and_a_path_draws_there(recorded: Path, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(["replay", str(recorded), "--csv", "r.csv", "--plot", "none"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]  # no none.png
+    assert cli_main(["replay", str(recorded), "--csv", "r.csv", "--plot", "path.png"]) == 0
+    assert (tmp_path / "path.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

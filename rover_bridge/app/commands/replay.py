@@ -5,15 +5,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from rover_bridge.app.commands import add_params_argument
+
 NAME = "replay"
 HELP = "run the estimator over a recorded .tlog; write pose, velocity and covariance as CSV and print a summary"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="a .tlog recorded by `rover-bridge run --tlog` (or MAVProxy)")
-    parser.add_argument("--params", default="params/default.toml", help="robot profile (default %(default)s)")
+    add_params_argument(parser)
     parser.add_argument("--csv", default=None, metavar="PATH", help="output CSV (default: LOG with .csv)")
-    parser.add_argument("--plot", default=None, metavar="PATH", help="also draw the replayed path (needs matplotlib)")
+    parser.add_argument("--plot", default=None, metavar="PATH",
+                        help="also draw the replayed path here (needs matplotlib); 'none' (the default): no picture")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -26,7 +29,7 @@ def main(args: argparse.Namespace) -> int:
     write_csv(result.rows, csv_path)
     print(result.summary())
     print(f"csv: {csv_path} ({len(result.rows)} rows)")
-    if args.plot:
+    if args.plot and args.plot.lower() != "none":
         try:
             import matplotlib
 
