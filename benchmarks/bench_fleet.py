@@ -24,6 +24,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from sitl import Emulator, Scenario, VehicleConfig
 from sitl.mav import mavlink
@@ -134,18 +135,85 @@ def write_fleet(folder: Path, duration_s: float = 90.0, rovers: tuple[EmulatedRo
     return paths
 
 
+def accuracy_table(reports: list[Any], profile: Any) -> list[str]:
+    """Truth against the fleet's per-rover calibration (the 2 % flag threshold)."""
+    from rover_bridge.app.composition import BridgeCore
+    from rover_bridge.app.fleet_rovers import rovers
+
+    prior = BridgeCore(profile).estimate.calibration_estimate()
+    found = {r.rover: r for r in rovers(reports, profile, prior, "both", 0.02)}
+    lines = [f"{'rover':10s} {'logs':>4s} {'track truth':>11s} {'found':>16s} {'error':>7s} {'ratio truth':>11s} "
+             f"{'found':>16s} {'error':>7s}  flagged (should be)"]
+    worst = 0.0
+    for t in FLEET:
+        r = found[f"{t.name}#{t.system_id}"]
+        e_kt, e_q = 100 * (r.track_scale / t.track_scale - 1), 100 * (r.radius_ratio / t.radius_ratio - 1)
+        worst = max(worst, abs(e_kt), abs(e_q))
+        should = max(abs(t.track_scale - 1), abs(t.radius_ratio - 1)) > 0.02
+        lines.append(f"{t.name:10s} {r.logs:4d} {t.track_scale:11.4f} {r.track_scale:8.4f} +-{r.track_scale_sigma:.4f} "
+                     f"{e_kt:+6.2f}% {t.radius_ratio:11.4f} {r.radius_ratio:8.4f} +-{r.radius_ratio_sigma:.4f} "
+                     f"{e_q:+6.2f}%  {'yes' if r.flagged else 'no':3s} ({'yes' if should else 'no'})"
+                     f"{'' if r.flagged == should else '  WRONG'}")
+    lines.append(f"worst error {worst:.2f} % (target 0.5 %)")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
+    from rover_bridge.app.fleet_analysis import fleet_profile
+    from rover_bridge.app.fleet_dask import DaskMap
+    from rover_bridge.app.fleet_inputs import expand
+    from rover_bridge.app.replay import replay
+    from rover_bridge.params import load_profile
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--logs-dir", default=None, help="where the fleet's logs are (written if missing)")
     parser.add_argument("--duration-s", type=float, default=90.0, help="each log's length (default %(default)s)")
-    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="cluster sizes (default 1 2)")
+    parser.add_argument("--params", default=str(Path(__file__).resolve().parents[1] / "params" / "default.toml"))
     args = parser.parse_args(argv)
     folder = Path(args.logs_dir or Path(tempfile.gettempdir()) / "rover-bridge-fleet-bench")
     t0 = time.perf_counter()
     paths = write_fleet(folder, args.duration_s)
-    print(f"fleet: {len(paths)} logs in {folder} ({time.perf_counter() - t0:.0f} s to write or find)")
-    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}, {os.cpu_count()} cores")
-    return 0
+    print(f"fleet: {len(paths)} logs of {args.duration_s:.0f} s in {folder} ({time.perf_counter() - t0:.0f} s to "
+          f"write or find), {os.cpu_count()} cores")
+    profile = fleet_profile(load_profile(args.params))
+    jobs = expand([str(folder)])
+    loads = [os.getloadavg()[0]]
+    runs: dict[int, list[Any]] = {}
+    totals: dict[int, float] = {}
+    cpu_per_log: dict[int, float] = {}
+    print("\nthe same logs on a LocalCluster of N worker processes (start-up: cluster up, workers warmed up):")
+    print(f"{'workers':>7s} {'start-up s':>10s} {'run s':>8s} {'total s':>8s} {'logs/s':>7s} {'speed-up':>8s} "
+          f"{'worker CPU s/log':>16s} {'CPU / (wall x workers)':>22s}")
+    for n in args.workers:
+        t0 = time.perf_counter()
+        with DaskMap(None, n, progress=False) as dask_map:
+            started = dask_map.started_s
+            cpu0 = dask_map.worker_cpu_s()
+            t1 = time.perf_counter()
+            runs[n] = dask_map.run(jobs, profile)
+            run_s = time.perf_counter() - t1
+            cpu = dask_map.worker_cpu_s() - cpu0
+        totals[n] = time.perf_counter() - t0
+        cpu_per_log[n] = cpu / len(jobs)
+        loads.append(os.getloadavg()[0])
+        print(f"{n:7d} {started:10.1f} {run_s:8.1f} {totals[n]:8.1f} {len(jobs) / totals[n]:7.2f} "
+              f"{totals[args.workers[0]] / totals[n]:7.2f}x {cpu_per_log[n]:16.2f} {cpu / (run_s * n):22.2f}")
+    same = len({tuple(repr(r) for r in v) for v in runs.values()}) == 1
+    print("reports identical, field for field, for every cluster size" if same else "REPORTS DIFFER")
+    t0, c0 = time.perf_counter(), time.process_time()
+    for j in jobs:
+        replay(j.path, profile)
+    alone, alone_cpu = (time.perf_counter() - t0) / len(jobs), (time.process_time() - c0) / len(jobs)
+    loads.append(os.getloadavg()[0])
+    one = args.workers[0]
+    print(f"\nper log, `replay` alone (this process, one log after the other): {alone:.2f} s wall, {alone_cpu:.2f} s "
+          f"CPU; on the cluster of {one} worker: {totals[one] / len(jobs):.2f} s wall (start-up included), "
+          f"{cpu_per_log[one]:.2f} s CPU ({100 * (cpu_per_log[one] / alone_cpu - 1):+.1f} %)")
+    print("\naccuracy (combined per rover, the profile's prior taken out of each log; 2 % flag threshold):")
+    print("\n".join(accuracy_table(runs[args.workers[-1]], profile)))
+    print(f"\nload average (1 min) before and after each stage: {' '.join(f'{x:.2f}' for x in loads)}")
+    return 0 if same else 1
 
 
 if __name__ == "__main__":

@@ -49,6 +49,14 @@ def analyse_job(job: LogJob, profile: Profile, use_truncated: bool) -> LogReport
                          reason=f"error while reading: {type(exc).__name__}: {exc}")
 
 
+def warm_up() -> None:
+    """What every worker imports before its first log (part of the start-up, not of the first log's time)."""
+    importlib.import_module("filterpy.kalman")  # with scipy: half a second
+    from rover_bridge.app.composition import BridgeCore
+
+    BridgeCore(Profile())
+
+
 class DaskMap:
     """`with DaskMap(scheduler, workers) as m: reports = m.run(jobs, profile)` (see the module docstring)."""
 
@@ -72,6 +80,12 @@ class DaskMap:
             self._cluster = dist.LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                          dashboard_address=":0", silence_logs=logging.ERROR)  # any free port
             self._client = dist.Client(self._cluster)
+        try:
+            self._client.run(warm_up)
+        except Exception as exc:  # e.g. a cluster whose workers do not have rover-bridge installed
+            self.__exit__(None, None, None)
+            raise ConfigError([f"the Dask workers cannot run rover-bridge ({type(exc).__name__}: {exc}): install "
+                               f"it on them ({INSTALL})"]) from exc
         self.started_s = time.perf_counter() - t0
         return self
 
@@ -80,6 +94,10 @@ class DaskMap:
             self._client.close()
         if self._cluster is not None:
             self._cluster.close()
+
+    def worker_cpu_s(self) -> float:
+        """CPU seconds the workers' processes have used so far (what a benchmark divides by the logs)."""
+        return float(sum(self._client.run(time.process_time).values()))
 
     @property
     def worker_count(self) -> int:
@@ -103,7 +121,7 @@ class DaskMap:
                                    reason=f"task failed: {type(exc).__name__}: {exc}")
             if self.progress:
                 _bar(done, len(jobs), time.perf_counter() - t0)
-        if self.progress and jobs:
+        if self.progress and jobs and sys.stderr.isatty():
             print(file=sys.stderr)
         return [r for r in out if r is not None]
 
@@ -114,8 +132,12 @@ def _distributed() -> Any:
 
 
 def _bar(done: int, total: int, elapsed_s: float) -> None:
+    """A bar redrawn in place on a terminal; elsewhere (a log file) a line at every tenth of the logs."""
+    tty = sys.stderr.isatty()
+    if not tty and done != total and done * 10 // total == (done - 1) * 10 // total:
+        return
     width = 30
     filled = round(width * done / total)
     eta = elapsed_s / done * (total - done)
-    print(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{total} logs, {elapsed_s:.0f} s, about {eta:.0f} s "
-          "left ", end="", file=sys.stderr, flush=True)
+    print(f"{chr(13) if tty else ''}[{'#' * filled}{'.' * (width - filled)}] {done}/{total} logs, {elapsed_s:.0f} s, "
+          f"about {eta:.0f} s left ", end="" if tty else "\n", file=sys.stderr, flush=True)
