@@ -259,3 +259,16 @@ def test_tables_are_parquet_or_csv_where_no_parquet_library_is_installed(
     back_csv = read_table(csv_path)
     assert list(back_csv[0]) == list(LogReport.columns())
     assert float(back_csv[0]["track_scale"]) == 1.01 and back_csv[1]["reason"] == "empty"
+
+
+@settings(max_examples=200)
+@given(st.binary(max_size=200), st.binary(min_size=1, max_size=6), st.integers(1, 16))
+def test_a_byte_pattern_is_found_across_chunk_borders(data: bytes, pattern: bytes, chunk: int) -> None:
+    import tempfile
+
+    from rover_bridge.app.fleet_sources import LogFrames
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "x.tlog"
+        path.write_bytes(data)
+        assert LogFrames(path).contains(pattern, chunk_bytes=chunk) == (pattern in data)

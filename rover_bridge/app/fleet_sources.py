@@ -57,6 +57,17 @@ class LogFrames:
             raise ConfigError([f"{self.path}: no such log"])
         self.stats = LogStats(log_kind(self.path), self.path.stat().st_size)
 
+    def contains(self, pattern: bytes, chunk_bytes: int = 1 << 20) -> bool:
+        """Whether these bytes appear anywhere in the file (read in chunks: memory stays bounded)."""
+        tail = b""
+        with open(self.path, "rb") as f:
+            while chunk := f.read(chunk_bytes):
+                window = tail + chunk
+                if pattern in window:
+                    return True
+                tail = window[max(0, len(window) - len(pattern) + 1):] if len(pattern) > 1 else b""
+        return False
+
     def __iter__(self) -> Iterator[Any]:
         self.stats = LogStats(self.stats.kind, self.path.stat().st_size)
         if self.stats.size_bytes == 0:

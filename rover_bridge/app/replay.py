@@ -152,8 +152,10 @@ def replay(path: str | Path, profile: Profile, observer: ReplayObserver | None =
     """
     log = LogFrames(path)
     own_comp = profile.mavlink.component_id
-    ticks_from_log = log.stats.kind == "tlog" and any(
-        m.get_srcComponent() == own_comp and m.get_type() == "ODOMETRY" for m in log)
+    # The bridge's own ODOMETRY is a MAVLink 2 frame whose header holds its component id then the message id
+    # (331, three bytes little-endian): a log without those four bytes (a ground station's) is not read twice.
+    ticks_from_log = (log.stats.kind == "tlog" and log.contains(bytes([own_comp]) + (331).to_bytes(3, "little"))
+                      and any(m.get_srcComponent() == own_comp and m.get_type() == "ODOMETRY" for m in log))
     core = BridgeCore(profile)
     rows: list[OdometryRow] = []
     live: list[OdometryRow] = []
