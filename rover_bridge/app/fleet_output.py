@@ -74,15 +74,17 @@ def summary(logs: Sequence[LogReport], rovers: Sequence[RoverReport], threshold:
         lines.append(f"drift against GPS: {len(drifts)} logs with a good fix, median {_median(drifts):.2f} %, "
                      f"worst {max(drifts):.2f} % of the distance")
     lines.append("")
-    lines.append(f"{'rover':24s} {'logs':>4s} {'track scale':>17s} {'radius ratio':>17s} {'trend/30 d':>9s}  flags")
+    lines.append(f"{'rover':24s} {'logs':>4s} {'track scale':>17s} {'radius ratio':>17s} {'track trend/30 d':>16s}  "
+                 "flags")
     for r in rovers:
-        trend = f"{100 * r.track_scale_trend_per_30d:+.2f}%" if math.isfinite(r.track_scale_trend_per_30d) else "-"
+        trend = (f"{100 * r.track_scale_trend_per_30d:+.2f} +-{100 * r.track_scale_trend_sigma:.2f} %"
+                 if math.isfinite(r.track_scale_trend_per_30d) else "-")
         notes = [r.flags] if r.flags else []
         notes += [f"{r.stalls} stalls"] if r.stalls else []
         notes += [f"{r.slip_events} slips"] if r.slip_events else []
         notes += [f"wiring: {r.wiring}"] if r.wiring else []
         lines.append(f"{r.rover:24s} {r.logs:4d} {r.track_scale:8.4f} +-{r.track_scale_sigma:.4f} "
-                     f"{r.radius_ratio:8.4f} +-{r.radius_ratio_sigma:.4f} {trend:>9s}  {'; '.join(notes)}")
+                     f"{r.radius_ratio:8.4f} +-{r.radius_ratio_sigma:.4f} {trend:>16s}  {'; '.join(notes)}")
     if skipped:
         lines += ["", "skipped:"] + [f"  {r.path}: {r.reason}" for r in skipped]
     noted = [r for r in used if r.note]

@@ -141,12 +141,15 @@ class DataFlashFrames:
     def _account(self, log: Any) -> None:
         """Bytes in readable messages, unreadable ones between them, and a cut last message, from the index."""
         covered = last_end = 0
+        size = self.stats.size_bytes
         for mtype, offsets in enumerate(log.offsets):
             if not offsets or mtype not in log.formats:
                 continue
             length = log.formats[mtype].len
-            covered += len(offsets) * length
-            last_end = max(last_end, offsets[-1] + length)
+            whole = len(offsets) if offsets[-1] + length <= size else len(offsets) - 1  # the index has a cut one
+            covered += whole * length
+            if whole:
+                last_end = max(last_end, offsets[whole - 1] + length)
         st = self.stats
         st.trailing_bytes = max(0, st.size_bytes - last_end) if last_end else st.size_bytes
         st.bad_bytes = max(0, last_end - covered)
