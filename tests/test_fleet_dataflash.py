@@ -117,3 +117,30 @@ def test_a_damaged_dataflash_log_says_why(emulated_bin: Path, tmp_path: Path) ->
     assert reports["garbage.bin"].reason.startswith("corrupt:")
     assert reports["noise.bin"].reason.split(":")[0] in ("corrupt", "unreadable")
     assert not any(r.used for r in reports.values())
+
+
+# ---------------------------------------------------------------------------- a real ArduPilot Rover SITL
+
+SITL_BIN = Path(__file__).resolve().parent / "data" / "ardurover-skid-wenc.bin"
+SITL_PROFILE = Path(__file__).resolve().parents[1] / "params" / "ardupilot-sitl-skid.toml"
+SITL_CALIBRATE_TRACK_M = 1.6333  # `rover-bridge calibrate` live on the same SITL (tests/data/README.md)
+
+
+def test_a_real_ardupilot_log_gives_calibrates_track_and_follows_its_gps() -> None:
+    from rover_bridge.params import load_profile
+
+    profile = fleet_profile(load_profile(SITL_PROFILE))
+    r = analyse_log(str(SITL_BIN), profile, "sitl")
+    assert r.used and r.kind == "dataflash" and r.note == "", r.reason
+    assert r.system_id == 1
+    assert r.duration_s > 150.0 and r.distance_m > 100.0
+    track_m = profile.robot.track_width_m * r.track_scale
+    assert track_m == pytest.approx(SITL_CALIBRATE_TRACK_M, rel=0.02)
+    assert r.track_scale_sigma < 0.005
+    assert r.radius_ratio == pytest.approx(1.0, abs=0.01)  # SITL's two encoders share one radius
+    assert r.gps_fixes > 500 and r.drift_pct < 1.0
+    assert (r.stalls, r.wiring, r.slip_events, r.log_gaps, r.clock_jumps) == (0, "", 0, 0, 0)
+    assert 1.7e9 < r.start_unix_s < 2.1e9  # from the GPS week: the SITL's (simulated) date
+    # replay alone: the same figures (the fleet's per-log work is replay's)
+    alone = replay(SITL_BIN, profile)
+    assert alone.calibration.track_scale == r.track_scale and alone.rows[-1].x_m == r.final_x_m

@@ -11,7 +11,7 @@ sequence of straight runs, arcs and spins in MANUAL with RC overrides of channel
 --drive-s seconds, stops and disarms; ArduPilot closes that log. Then it arms again and `rover-bridge calibrate
 --quick --yes` runs on SERIAL0, against the same simulated rover, and its track width is printed. The log is
 cut to the messages rover-bridge reads (FMT/UNIT/MULT/FMTU, a few PARM, MODE, WENC, IMU and GPS instance 0, ATT,
-RCIN, RCOU), every one kept whole and in order, and written to --out.
+RCIN, RCOU), every one kept whole and in order, up to the first disarm, and written to --out.
 """
 
 from __future__ import annotations
@@ -37,8 +37,9 @@ WENC2_TYPE 10
 WENC_POS_Y 0.8185
 WENC2_POS_Y -0.8185
 LOG_DISARMED 0
+LOG_FILE_DSRMROT 1
 LOG_BITMASK 16518
-"""  # LOG_BITMASK: ATTITUDE_MED (ATT 10 Hz), GPS, IMU, RC (RCIN, RCOU, WENC 10 Hz)
+"""  # LOG_BITMASK: ATTITUDE_MED (ATT 10 Hz), GPS, IMU, RC (RCIN, RCOU, WENC 10 Hz); a new log file at each arming
 KEEP = {"FMT", "FMTU", "UNIT", "MULT", "MODE", "WENC", "ATT", "RCIN", "RCOU"}
 KEEP_INSTANCE_0 = {"IMU", "GPS"}
 KEEP_PARAMS = {"SYSID_THISMAV", "WENC_TYPE", "WENC2_TYPE", "WENC_POS_Y", "WENC2_POS_Y", "WENC_RADIUS", "WENC2_RADIUS",
@@ -109,16 +110,25 @@ class Gcs:
 
 
 def cut(source: Path, out: Path) -> None:
-    """Copy the messages rover-bridge reads, whole and in file order, into a new DataFlash log."""
+    """Copy the messages rover-bridge reads, whole and in file order, up to the first disarm (the scripted
+    drive; ArduPilot goes on logging into the same file after it), into a new DataFlash log."""
     from pymavlink import DFReader
 
     log: Any = DFReader.DFReader_binary(str(source))
     data = source.read_bytes()
+    end = len(data)
+    if "ARM" in log.name_to_id:
+        for ofs in log.offsets[log.name_to_id["ARM"]]:
+            log.offset = ofs
+            if int(log._parse_next().ArmState) == 0:
+                end = ofs
+                break
     keep: list[int] = []
-    for mtype, offsets in enumerate(log.offsets):
+    for mtype, all_offsets in enumerate(log.offsets):
         fmt = log.formats.get(mtype)
-        if fmt is None or not offsets:
+        if fmt is None or not all_offsets:
             continue
+        offsets = [ofs for ofs in all_offsets if ofs + fmt.len <= len(data) and (ofs < end or fmt.name == "FMT")]
         if fmt.name in KEEP:
             keep += offsets
         elif fmt.name in KEEP_INSTANCE_0 or fmt.name == "PARM":
