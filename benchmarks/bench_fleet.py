@@ -10,7 +10,9 @@ the same bytes). `write_fleet` is also what the tests use.
 
 prints: the accuracy table (truth against what the fleet found, flags), then the speed table (the same
 40 logs on a LocalCluster with 1 and with 2 worker processes, start-up included; `replay` alone, in
-process, log after log, for the per-log throughput) and the machine's load average while it ran.
+process, log after log, for the per-log throughput) and the machine's load average while it ran. Measure on a
+quiet machine: with the kernel's autogroup scheduling on (it says so), a loaded machine gives this session one
+share of the CPU however many worker processes it starts.
 """
 
 from __future__ import annotations
@@ -176,6 +178,10 @@ def main(argv: list[str] | None = None) -> int:
     paths = write_fleet(folder, args.duration_s)
     print(f"fleet: {len(paths)} logs of {args.duration_s:.0f} s in {folder} ({time.perf_counter() - t0:.0f} s to "
           f"write or find), {os.cpu_count()} cores")
+    autogroup = Path("/proc/sys/kernel/sched_autogroup_enabled")
+    if autogroup.exists() and autogroup.read_text().strip() == "1":
+        print("note: the kernel's autogroup scheduling is on: this session's processes (both workers included) share "
+              "one session's CPU share against other sessions, so the speed-up is only meaningful on a quiet machine")
     profile = fleet_profile(load_profile(args.params))
     jobs = expand([str(folder)])
     loads = [os.getloadavg()[0]]
