@@ -18,7 +18,7 @@ from rover_bridge.app.logs import install_log_rate_limit
 from rover_bridge.errors import ConfigError, LinkError
 
 # Each subcommand lives in its own module (rover_bridge/app/commands/NAME.py).
-COMMAND_MODULES = ("run", "demo", "init", "calibrate", "replay", "check_params", "ik")
+COMMAND_MODULES = ("run", "demo", "init", "calibrate", "replay", "fleet", "check_params", "ik")
 
 
 def _load(module_name: str) -> ModuleType:

@@ -245,20 +245,30 @@ class Deadlines:
 SAME_OUTPUT_S = 1e-3
 
 
-def from_log(profile: Profile, written: Iterable[tuple[str, float]]) -> dict[str, OutputTiming]:
-    """The accounting of a recorded run from the bridge's own frames, (output, time written) in log order.
-    Only deadlines: a log has no passes, so neither budgets nor held-back outputs (a pause of an output
-    counts as late here)."""
-    t = profile.timing
-    outputs = {s.name: OutputTiming(s, t.budget_fraction, t.deadline_fraction) for s in schedules(profile)}
-    last: dict[str, float] = {}
-    for name, at_s in written:
-        out = outputs.get(name)
-        if out is None or at_s - last.get(name, -math.inf) < SAME_OUTPUT_S:
-            continue
-        last[name] = at_s
+class LogTiming:
+    """The accounting of a recorded run from the bridge's own frames, fed one at a time in log order (a log
+    streams: nothing is kept but the counters). Only deadlines: a log has no passes, so neither budgets nor
+    held-back outputs (a pause of an output counts as late here)."""
+
+    def __init__(self, profile: Profile) -> None:
+        t = profile.timing
+        self.outputs = {s.name: OutputTiming(s, t.budget_fraction, t.deadline_fraction) for s in schedules(profile)}
+        self._last: dict[str, float] = {}
+
+    def written(self, name: str, at_s: float) -> None:
+        out = self.outputs.get(name)
+        if out is None or at_s - self._last.get(name, -math.inf) < SAME_OUTPUT_S:
+            return
+        self._last[name] = at_s
         out.record(at_s, at_s)
-    return outputs
+
+
+def from_log(profile: Profile, written: Iterable[tuple[str, float]]) -> dict[str, OutputTiming]:
+    """LogTiming over (output, time written) pairs in log order."""
+    timing = LogTiming(profile)
+    for name, at_s in written:
+        timing.written(name, at_s)
+    return timing.outputs
 
 
 def summary_line(outputs: dict[str, OutputTiming]) -> str:
