@@ -102,6 +102,7 @@ class Autopilot:
         self.params: dict[str, Param] = default_params(vehicle, system_id)
         self.outbox: list[MAVLinkMessage] = []
         self.statustexts_sent: list[str] = []
+        self._text_id = 0
         self.received_odometry: list[ReceivedMessage] = []
         self.counters: dict[str, int] = {}
         self.rc = RcServos(vehicle, self.param)
@@ -168,8 +169,15 @@ class Autopilot:
         self.counters[name] = self.counters.get(name, 0) + n
 
     def send_text(self, severity: int, text: str) -> None:
+        """STATUSTEXT; a text longer than 50 bytes goes out in 50-byte chunks sharing an id (GCS::send_textv)."""
         self.statustexts_sent.append(text)
-        self.outbox.append(self.mav.statustext_encode(severity, text.encode()[:50]))
+        data = text.encode()
+        if len(data) <= 50:
+            self.outbox.append(self.mav.statustext_encode(severity, data))
+            return
+        self._text_id = self._text_id % 65535 + 1
+        for seq, start in enumerate(range(0, len(data) + 1, 50)):
+            self.outbox.append(self.mav.statustext_encode(severity, data[start:start + 50], self._text_id, seq))
 
     def lat_lon_of(self, north_m: float, east_m: float) -> tuple[float, float]:
         return lat_lon_of(north_m, east_m, self.vehicle.origin_lat_deg, self.vehicle.origin_lon_deg)

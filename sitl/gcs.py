@@ -65,7 +65,16 @@ class InProcessGcs:
         return [m for _, m in self.received if m.get_type() == type_name]
 
     def texts(self) -> list[str]:
-        return [m.text for m in self.of("STATUSTEXT")]
+        """STATUSTEXTs, chunks of a long one (same id) joined."""
+        out: list[str] = []
+        last_id = 0
+        for m in self.of("STATUSTEXT"):
+            if m.id != 0 and m.id == last_id and m.chunk_seq > 0:
+                out[-1] += m.text
+            else:
+                out.append(m.text)
+            last_id = m.id
+        return out
 
     # ------------------------------------------------------------------ conveniences
     def heartbeat(self) -> None:

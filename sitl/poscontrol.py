@@ -8,8 +8,10 @@ libraries/AR_WPNav/AR_PivotTurn.cpp. What is kept:
   to what the speed limit allows) on the target's position error, plus the target's own velocity,
   limited to the speed limit. Acceleration target = PSC_VEL_P (1.0) times the velocity error (filtered
   at 5 Hz) plus the target's acceleration. Desired speed = the forward part of the velocity target
-  (never below zero unless stopping), acceleration-limited; desired turn rate = the lateral part of the
-  acceleration target / max(speed, 1 m/s). Idle for 100 ms: it starts again from where the vehicle is.
+  (unless stopping, never below the speed the vehicle turns at: sqrt(ATC_TURN_MAX_G * g / 2 *
+  TURN_RADIUS), and 0 for a skid-steering rover, which can pivot), acceleration-limited; desired turn
+  rate = the lateral part of the acceleration target / max(speed, 1 m/s). Idle for 100 ms: it starts
+  again from where the vehicle is.
 - Pivot (skid-steering only, WP_PIVOT_ANGLE > 5): starts when the heading error to the next leg is
   more than WP_PIVOT_ANGLE; the vehicle first slows to zero, then turns on the spot towards the leg at
   up to WP_PIVOT_RATE (through the heading controller ATC_STR_ANG_P); it ends within 5 deg of the leg
@@ -77,6 +79,7 @@ class PosControl:
     def __init__(self, atc: AttitudeControl) -> None:
         self._atc = atc
         self.speed_max = self.accel_max = self.lat_accel_max = self.jerk_max = 0.0
+        self.turn_radius_m = 0.0  # 0 for a skid-steering rover (it can pivot), else TURN_RADIUS
         self.pos_target: Vec = (0.0, 0.0)
         self.vel_desired: Vec = (0.0, 0.0)
         self.accel_desired: Vec = (0.0, 0.0)
@@ -134,8 +137,9 @@ class PosControl:
             self._vel_error = (e[0] + k * (raw[0] - e[0]), e[1] + k * (raw[1] - e[1]))
         accel = (self._vel_error[0] * VEL_P + self.accel_desired[0], self._vel_error[1] * VEL_P + self.accel_desired[1])
         speed = _to_body(vel_target, nav.yaw_rad)[0]
-        if not stopping:
-            speed = max(0.0, speed)  # a skid-steering rover turns on the spot instead (turn speed 0)
+        if not stopping:  # never slower than the vehicle can turn at (0 when it can pivot)
+            turn_speed_min = math.sqrt(max(0.0, self._atc.turn_lat_accel_max * 0.5 * self.turn_radius_m))
+            speed = max(min(_norm(vel_target), turn_speed_min), speed)
         self.desired_speed = self._atc.desired_speed_accel_limited(speed, dt_s)
         self.lat_accel = 0.0 if stopping else _to_body(accel, nav.yaw_rad)[1]
         self.turn_rate_rad_s = self._atc.turn_rate_from_lat_accel(self.lat_accel, self.desired_speed)

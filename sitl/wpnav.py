@@ -95,7 +95,9 @@ class WPNav:
         self.valid = True
 
     def set_turn_params(self, pivot_possible: bool) -> None:
+        """Rover, every loop: a skid-steering rover can pivot; any other turns on TURN_RADIUS."""
         self.pivot.enabled = pivot_possible
+        self.pos.turn_radius_m = 0.0 if pivot_possible else max(0.0, self._param("TURN_RADIUS"))
         if not pivot_possible:
             self.pivot.deactivate()
 
@@ -106,7 +108,7 @@ class WPNav:
         half = math.radians(abs(turn_deg)) / 2.0
         if half < 1e-6:
             return self.speed_max
-        radius = max(self._param("WP_RADIUS"), 0.0) / math.tan(half)
+        radius = max(self._param("WP_RADIUS"), self.pos.turn_radius_m, 0.0) / math.tan(half)
         return min(self.speed_max, math.sqrt(self._atc.turn_lat_accel_max * radius))
 
     def set_destination(self, dest: Vec, nav: NavState, now_ms: int, next_dest: Vec | None = None) -> None:
