@@ -88,9 +88,11 @@ class VehicleConfig:
     rate_extra1_hz: float = 1.0
     rate_extra2_hz: float = 0.0
     rate_extra3_hz: float = 1.0
-    # Ground-truth origin for SIMSTATE lat/lng (ArduPilot's CMAC SITL home).
+    # Ground-truth origin for SIMSTATE lat/lng (ArduPilot's CMAC SITL home) and the heading the robot
+    # starts with (degrees clockwise from north; ArduPilot's SITL starts CMAC at 353).
     origin_lat_deg: float = -35.363261
     origin_lon_deg: float = 149.165230
+    start_heading_deg: float = 0.0
     # Autopilot parameters' boot values (name, value), as a defaults .parm file sets them; in a profile
     # a table: [vehicle.params] SERVO5_FUNCTION = 73. Unknown names are refused when the emulator starts.
     params: tuple[tuple[str, float], ...] = ()

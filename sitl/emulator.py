@@ -107,7 +107,8 @@ class Emulator:
         self._world = _World(self.vehicle, self.scenario, seed)
         self._link_in = FaultyLink(self.faults.inbound, seed=hash_seed(seed, "in"))
         self._link_out = FaultyLink(self.faults.outbound, seed=hash_seed(seed, "out"))
-        self._phys = PhysicsState()
+        start_yaw = physics.wrap_pi(math.radians(self.vehicle.start_heading_deg))
+        self._phys = PhysicsState(yaw_rad=start_yaw, ahrs_yaw_rad=start_yaw)
         self._now_us = 0
         self._scenario_reboots_done = 0
         self._endpoint: Endpoint | None = None

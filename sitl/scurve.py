@@ -61,6 +61,17 @@ class _Change:
         return s, v2 + sign * (ap * u - j * u * u / 2.0), sign * (ap - j * u)
 
 
+def stoppable_speed(length_m: float, accel_max: float, jerk_max: float) -> float:
+    """The highest speed from which a jerk-limited stop fits in ``length_m`` (a change is symmetric,
+    so this is also the highest speed reachable from rest in that length)."""
+    accel_max, jerk_max = max(accel_max, 1e-3), max(jerk_max, 1e-3)
+    lo, hi = 0.0, 100.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _Change.make(mid, 0.0, accel_max, jerk_max).distance_m <= length_m else (lo, mid)
+    return lo
+
+
 class LegProfile:
     """Distance, speed and acceleration along a leg of ``length_m`` as functions of the leg's time."""
 

@@ -18,7 +18,8 @@ and Rover/mode.cpp (navigate_to_waypoint). What is kept:
   the vehicle is within WP_RADIUS or past the line through the waypoint square to the leg.
 - Simplified: ArduPilot blends a fast waypoint's corner into the next leg along an S-curve within
   WP_RADIUS; here the target takes the corner at min(speed, sqrt(ATC_TURN_MAX_G * g * r)) with r the
-  radius of an arc tangent to both legs WP_RADIUS before the corner, and the position controller cuts it.
+  radius of an arc tangent to both legs WP_RADIUS before the corner, no faster than the next leg can
+  stop from in its own length, and the position controller cuts the corner.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import math
 
 from sitl.control import AttitudeControl, NavState, ParamGetter
 from sitl.poscontrol import PivotTurn, PosControl, Vec, _norm, _sub
-from sitl.scurve import LegProfile
+from sitl.scurve import LegProfile, stoppable_speed
 
 SPEED_MIN_M_S = 0.05  # AR_WPNAV_SPEED_MIN
 ACCEL_UNLIMITED = 20.0  # AR_WPNAV_ACCEL_MAX
@@ -129,7 +130,10 @@ class WPNav:
             self._pivot_at_next = self.pivot.would_activate(turn)
             if not self._pivot_at_next:
                 self.fast = True
-                end_m_s = self._corner_speed(turn)
+                # ArduPilot overlaps two rest-to-rest S-curves at a corner, so the next leg can always
+                # stop in its own length; the corner speed here is held to what allows that.
+                end_m_s = min(self._corner_speed(turn), stoppable_speed(
+                    _norm(_sub(next_dest, dest)), self.pos.accel_max, self.pos.jerk_max))
         self._next = next_dest
         p = self.pos
         self._leg = LegProfile(_norm(_sub(dest, self.origin)), self.speed_max, p.accel_max, p.jerk_max,

@@ -191,7 +191,8 @@ def test_passthrough_rover_does_not_move_and_the_unforwarded_demand_winds_up() -
     at_limit = [t for t, pwm in servo5 if pwm >= 1899]
     assert at_limit and at_limit[0] - servo5[0][0] <= 10.0  # measured: at its limit within 7 s
     speed = [m for m in g.of("PID_TUNING") if m.axis == 4][-1]
-    assert speed.achieved == 0.0 and speed.desired > 0.3 and speed.I >= 0.7  # the integrator wound up
+    # The speed integrator wound up (from 0) until the output saturated, then stopped growing.
+    assert speed.achieved == 0.0 and speed.desired > 0.3 and speed.I >= 0.4
 
 
 def test_pid_tuning_reports_turn_rate_in_deg_s_and_speed_and_freezes_in_hold() -> None:
