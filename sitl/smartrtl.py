@@ -8,12 +8,14 @@ What is kept:
   point; the path is then active. Three times a second, outside SMART_RTL, the position is saved when it
   is at least SRTL_ACCURACY from the last saved point. SRTL_POINTS (at most 500) bounds the path;
   SRTL_POINTS = 0 or SRTL_ACCURACY <= 0 disables SmartRTL.
-- SMART_RTL first asks for a "thorough cleanup", then drives back through the points, newest first,
-  and stops at the last (home).
-- Simplified: the cleanup is only the Ramer-Douglas-Peucker simplification with SRTL_ACCURACY / 2
-  (ArduPilot also prunes loops where the path comes back within SRTL_ACCURACY of itself, and runs
-  routine cleanups when the path fills up); a full path here stops taking points and, after 15 s,
-  deactivates SmartRTL ("SmartRTL deactivated: buffer full").
+- Cleanup: simplification (points within SRTL_ACCURACY / 2 of the line between their neighbours go)
+  and loop pruning (where the path comes back within 0.99 * SRTL_ACCURACY of an older part of itself,
+  the loop between is replaced by the midpoint of the two closest points). SMART_RTL first runs a
+  "thorough cleanup", then drives back through the points, newest first, and stops at the last (home).
+  A path that cannot shrink and stays full for 15 s deactivates SmartRTL ("SmartRTL deactivated:
+  buffer full").
+- Simplified: ArduPilot cleans up in the background, simplifying every 50 new points and pruning when
+  fewer than 10 places are left; here both run when fewer than 10 places are left, at once.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import math
 from collections.abc import Callable
 
 POINTS_MAX = 500  # SMARTRTL_POINTS_MAX
+CLEANUP_START_MARGIN = 10  # SMARTRTL_CLEANUP_START_MARGIN
 FULL_TIMEOUT_MS = 15_000  # SMARTRTL_TIMEOUT
 SAVE_INTERVAL_MS = 333  # the 3 Hz save_position task
 
@@ -55,6 +58,47 @@ def simplify(points: list[Vec], epsilon_m: float) -> list[Vec]:
             keep[worst_i] = True
             stack += [(first, worst_i), (worst_i, last)]
     return [p for p, k in zip(points, keep, strict=True) if k]
+
+
+def _cross(o: Vec, a: Vec, b: Vec) -> float:
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+
+def _closest_on_segment(p: Vec, a: Vec, b: Vec) -> Vec:
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    length2 = dx * dx + dy * dy
+    t = 0.0 if length2 == 0.0 else max(0.0, min(1.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / length2))
+    return a[0] + t * dx, a[1] + t * dy
+
+
+def segment_distance(a: Vec, b: Vec, c: Vec, d: Vec) -> tuple[float, Vec]:
+    """(closest distance between segments ab and cd, the midpoint of their closest points)."""
+    d1, d2, d3, d4 = _cross(c, d, a), _cross(c, d, b), _cross(a, b, c), _cross(a, b, d)
+    if d1 * d2 < 0.0 and d3 * d4 < 0.0:  # they cross
+        t = d1 / (d1 - d2)
+        return 0.0, (a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]))
+    best = (math.inf, a)
+    for p, q in ((a, _closest_on_segment(a, c, d)), (b, _closest_on_segment(b, c, d)),
+                 (_closest_on_segment(c, a, b), c), (_closest_on_segment(d, a, b), d)):
+        dist = math.hypot(p[0] - q[0], p[1] - q[1])
+        if dist < best[0]:
+            best = (dist, (0.5 * (p[0] + q[0]), 0.5 * (p[1] + q[1])))
+    return best
+
+
+def prune_loops(points: list[Vec], delta_m: float) -> list[Vec]:
+    """Replace each loop (a newer segment within ``delta_m`` of an older, non-adjacent one) by a midpoint."""
+    out = list(points)
+    i = len(out) - 1
+    while i >= 3:
+        for j in range(1, i - 1):  # segment (j-1, j) against the newer (i-1, i)
+            dist, mid = segment_distance(out[i - 1], out[i], out[j - 1], out[j])
+            if dist < delta_m:
+                out[j:i] = [mid]
+                i = j + 1
+                break
+        i -= 1
+    return out
 
 
 class SmartRtlPath:
@@ -95,6 +139,8 @@ class SmartRtlPath:
         if last is not None and math.hypot(pos[0] - last[0], pos[1] - last[1]) < accuracy:
             self._last_save_ms = now_ms
             return
+        if len(self.points) >= points_max - CLEANUP_START_MARGIN:
+            self.cleanup()
         if len(self.points) >= points_max:
             if now_ms - self._last_save_ms > FULL_TIMEOUT_MS:
                 self.active = False
@@ -104,9 +150,9 @@ class SmartRtlPath:
         self._last_save_ms = now_ms
 
     def cleanup(self) -> None:
-        """The thorough cleanup requested when SMART_RTL starts."""
+        """Simplify, then prune loops (SMART_RTL's thorough cleanup; also when the path fills up)."""
         _, accuracy = self._limits()
-        self.points = simplify(self.points, 0.5 * accuracy)
+        self.points = prune_loops(simplify(self.points, 0.5 * accuracy), 0.99 * accuracy)
 
     def pop(self) -> Vec | None:
         return self.points.pop() if self.active and self.points else None
