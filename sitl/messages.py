@@ -36,10 +36,14 @@ def build(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMe
         base = _P.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | _P.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
         if ap.mode == MODE_GUIDED:
             base |= _P.MAV_MODE_FLAG_GUIDED_ENABLED | _P.MAV_MODE_FLAG_STABILIZE_ENABLED
+        elif ap.mode in AUTOPILOT_MODES:  # GCS_MAVLINK_Rover::base_mode: modes that navigate themselves
+            base |= _P.MAV_MODE_FLAG_GUIDED_ENABLED
         if ap.armed:
             base |= _P.MAV_MODE_FLAG_SAFETY_ARMED
-        # GCS_MAVLINK_Rover::vehicle_system_status: armed and not holding is ACTIVE.
+        # GCS_MAVLINK_Rover::vehicle_system_status: armed and not holding is ACTIVE; a failsafe, CRITICAL.
         status = _P.MAV_STATE_ACTIVE if ap.armed and ap.mode != MODE_HOLD else _P.MAV_STATE_STANDBY
+        if ap.rover.failsafe.triggered:
+            status = _P.MAV_STATE_CRITICAL
         return m.heartbeat_encode(
             _P.MAV_TYPE_GROUND_ROVER, _P.MAV_AUTOPILOT_ARDUPILOTMEGA, base, ap.mode, status, 3
         )

@@ -64,6 +64,8 @@ def test_auto_reaches_every_item_in_order_and_completes_as_the_anchor_does() -> 
         max_rate = max(max_rate, abs(g.emu.truth.yaw_rate_rad_s))
 
     assert g.set_mode(MODE_AUTO) == P.MAV_RESULT_ACCEPTED
+    beat = g.of("HEARTBEAT")[-1]  # sent at once with the change
+    assert beat.custom_mode == MODE_AUTO and beat.base_mode & P.MAV_MODE_FLAG_GUIDED_ENABLED
     start = g.emu.sim_time_s
     assert g.run_until(lambda: "Mission Complete" in g.texts(), 60.0, each=watch)
     elapsed = g.emu.sim_time_s - start

@@ -118,8 +118,9 @@ def test_gcs_failsafe_holds_clears_overrides_and_clears_again() -> None:
     quiet = g.emu.sim_time_s
     g.run_until(lambda: "GCS Failsafe" in g.texts(), 10.0)
     assert 6.5 <= g.emu.sim_time_s - quiet <= 6.8  # FS_GCS_TIMEOUT 5 s, then FS_TIMEOUT 1.5 s, at 10 Hz
-    g.run(0.1)
+    g.run(1.1)
     assert g.emu.mode == MODE_HOLD  # FS_ACTION 2
+    assert g.of("HEARTBEAT")[-1].system_status == P.MAV_STATE_CRITICAL
     assert not g.emu.autopilot.has_override(1, g.emu.sim_time_us)  # RC overrides cleared
     g.heartbeat()
     g.run(0.3)
