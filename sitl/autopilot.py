@@ -117,12 +117,14 @@ class Autopilot:
         self.extnav = ExtNavConsumer(self._extnav_settings())
         self._extnav_last_us: int | None = None
         self._ahrs_yaw_rad = 0.0
+        self._physics = PhysicsState()  # the last state update() saw
         self._boot_vehicle()
 
     def _boot_vehicle(self) -> None:
         """What a boot starts afresh: the vehicle's loop, modes, home, fence, mission cursor and transfers."""
         self.rover = Rover(self.param, self.mission, self.send_text, self.streams.pending.append,
-                           self._item_reached, self.lat_lon_of, self._item_position)
+                           self._item_reached, self.lat_lon_of, self._item_position,
+                           lambda: self.nav_state(self._physics))
         # The emulator swaps ``outbox`` for a new list after each step: send through it, never keep it.
         self.protocol = MissionProtocol(self.mission, self.mav, lambda msg: self.outbox.append(msg), self.send_text,
                                         self._home_item, self.count)
@@ -198,9 +200,7 @@ class Autopilot:
 
     def mission_current_msg(self, seq: int) -> MAVLinkMessage:
         """MISSION_CURRENT reporting ``seq`` (MISSION_SET_CURRENT's answer)."""
-        msg = messages.build_all(self, _P.MAVLINK_MSG_ID_MISSION_CURRENT, self._now_us, PhysicsState())[0]
-        msg.seq = seq
-        return msg
+        return messages.mission_current(self, seq)
 
     # ------------------------------------------------------------------ the estimate
     def _extnav_settings(self) -> ExtNavSettings:
@@ -306,6 +306,7 @@ class Autopilot:
     def update(self, now_us: int, physics: PhysicsState) -> None:
         """Advance timers (reboot), the estimate and Rover's loop, and recompute every servo output."""
         self._now_us = now_us
+        self._physics = physics
         if self.booting_until_us is not None:
             if now_us < self.booting_until_us:
                 self.rc.silence()

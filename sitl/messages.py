@@ -132,11 +132,7 @@ def build_all(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> list[
             out.append(m.pid_tuning_encode(PID_AXIS_SPEED, i.target, i.actual, i.ff, i.p, i.i, i.d, 0.0, 1.0))
         return out
     if msg_id == _P.MAVLINK_MSG_ID_MISSION_CURRENT:
-        mission = ap.mission
-        state = (_NO_MISSION if not mission.present() else _ACTIVE if mission.state == RUNNING
-                 else _COMPLETE if mission.state == COMPLETE else _NOT_STARTED)
-        return [m.mission_current_encode(mission.current_nav_index(), max(0, mission.count() - 1), state,
-                                         1 if rover.mode == MODE_AUTO else 0)]
+        return [mission_current(ap, ap.mission.current_nav_index())]
     if msg_id == _P.MAVLINK_MSG_ID_HOME_POSITION:
         home = rover.nav.home
         if home is None:
@@ -151,3 +147,12 @@ def build_all(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> list[
 
 
 HOME_ALT_MM = 584_000  # the altitude GLOBAL_POSITION_INT reports
+
+
+def mission_current(ap: Autopilot, seq: int) -> MAVLinkMessage:
+    """MISSION_CURRENT (GCS_Common.cpp send_mission_current): ``seq``, items without home, state, AUTO or not."""
+    mission = ap.mission
+    state = (_NO_MISSION if not mission.present() else _ACTIVE if mission.state == RUNNING
+             else _COMPLETE if mission.state == COMPLETE else _NOT_STARTED)
+    return ap.mav.mission_current_encode(seq, max(0, mission.count() - 1), state,
+                                         1 if ap.rover.mode == MODE_AUTO else 0)

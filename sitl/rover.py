@@ -53,11 +53,12 @@ class Rover:
     def __init__(self, param: Callable[[str], float], mission: Mission, say: Callable[[int, str], None],
                  request: Callable[[int], None], item_reached: Callable[[int], None],
                  lat_lon_of: Callable[[float, float], tuple[float, float]],
-                 item_position: Callable[[MissionItem], Vec]) -> None:
+                 item_position: Callable[[MissionItem], Vec], nav_now: Callable[[], NavState | None]) -> None:
         self._param = param
         self._say = say
         self._request = request
         self._lat_lon_of = lat_lon_of
+        self._nav_now = nav_now  # the estimate as it is now (a mode change can come between loops)
         self.mission = mission
         self.nav = Navigation(param, mission, say, item_reached, self._mode_by_mission, item_position)
         self.fence = CircleFence(param, lambda text: say(INFO, text))
@@ -70,7 +71,6 @@ class Rover:
         self.disarm_requested = False  # FENCE_ACTION / FS_ACTION 5 (terminate)
         self.clear_overrides_requested = False  # a GCS failsafe clears RC overrides
         self.skid_steering = False
-        self._latest_nav: NavState | None = None
         self._now_ms = 0
         self._next_loop_us: int | None = None
         self._next_10hz_ms = 0
@@ -83,7 +83,7 @@ class Rover:
         if mode not in MODE_NAMES:
             self._say(WARNING, f"Mode change to {mode} failed: not emulated")
             return False
-        nav = self._latest_nav
+        nav = self._nav_now()
         refused = self.armed and mode not in NO_POSITION_NEEDED and nav is None
         if refused or not self.nav.enter(mode, nav, self._now_ms):
             self._say(WARNING, "Flight mode change failed")
@@ -141,7 +141,7 @@ class Rover:
         if self._next_loop_us <= now_us:
             self._next_loop_us = now_us + self.loop_period_us
         self._now_ms = (now_us - boot_us) // 1000
-        self._latest_nav, self.skid_steering = nav, skid_steering
+        self.skid_steering = skid_steering
         if armed and not self.armed:  # AP_Arming_Rover::arm: SmartRTL starts its path here
             self.nav.smartrtl.set_home((nav.north_m, nav.east_m) if nav is not None else None, self._now_ms)
         self.armed = armed
