@@ -1,11 +1,11 @@
 """COMMAND_LONG / COMMAND_INT as the emulated ArduPilot answers them (each gets one COMMAND_ACK).
 
 Read in ArduPilot: libraries/GCS_MAVLink/GCS_Common.cpp (handle_command_*), Rover/GCS_MAVLink_Rover.cpp,
-libraries/AP_ServoRelayEvents. Arm (param2 21196 forces past pre-arm checks) and disarm; DO_SET_MODE
-(custom mode in param2); DO_SET_SERVO; SET_MESSAGE_INTERVAL; REQUEST_MESSAGE;
-REQUEST_AUTOPILOT_CAPABILITIES; GET_HOME_POSITION (FAILED before home is set); PREFLIGHT_REBOOT_SHUTDOWN
-(refused while armed; param1 1 or 3; the ACK goes out before the board falls silent). Anything else:
-MAV_RESULT_UNSUPPORTED.
+libraries/AP_ServoRelayEvents, Rover/AP_Arming_Rover.cpp. Arm (param2 21196 forces past pre-arm checks) and
+disarm ("Throttle armed" / "Throttle disarmed" on a change); DO_SET_MODE (custom mode in param2);
+DO_SET_SERVO; SET_MESSAGE_INTERVAL; REQUEST_MESSAGE; REQUEST_AUTOPILOT_CAPABILITIES; GET_HOME_POSITION
+(FAILED before home is set); PREFLIGHT_REBOOT_SHUTDOWN (refused while armed; param1 1 or 3; the ACK goes
+out before the board falls silent). Anything else: MAV_RESULT_UNSUPPORTED.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from sitl.mav import MAVLinkMessage, mavlink
+from sitl.modes import MODE_AUTO
 from sitl.motors import FUNC_THROTTLE_LEFT, FUNC_THROTTLE_RIGHT
 from sitl.rc import NUM_SERVOS
 from sitl.streams import MAPPED
@@ -38,8 +39,7 @@ def handle_command(ap: Autopilot, msg: MAVLinkMessage, command: int, params: tup
         if p1 == 1.0:
             result = arm(ap, force=int(p2) == FORCE_ARM_MAGIC)
         elif p1 == 0.0:
-            ap.armed = False
-            result = ACCEPTED
+            result = disarm(ap)
     elif command == _P.MAV_CMD_DO_SET_MODE:
         result = ACCEPTED if set_mode(ap, int(p1), int(p2)) else FAILED
     elif command == _P.MAV_CMD_DO_SET_SERVO:
@@ -83,6 +83,17 @@ def arm(ap: Autopilot, force: bool) -> int:
         ap.send_text(_P.MAV_SEVERITY_CRITICAL, "PreArm: no motor, sail or scripting outputs defined")
         return FAILED
     ap.armed = True
+    ap.send_text(_P.MAV_SEVERITY_INFO, "Throttle armed")
+    return ACCEPTED
+
+
+def disarm(ap: Autopilot) -> int:
+    """AP_Arming_Rover::disarm: outside AUTO the mission starts from its first item next time."""
+    if ap.armed:
+        ap.armed = False
+        if ap.rover.mode != MODE_AUTO:
+            ap.mission.reset_cursor()
+        ap.send_text(_P.MAV_SEVERITY_INFO, "Throttle disarmed")
     return ACCEPTED
 
 

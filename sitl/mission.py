@@ -13,6 +13,7 @@ complete) and libraries/GCS_MAVLink/MissionItemProtocol_Waypoints.cpp. What is k
 - update (each loop in AUTO): start the next navigation item when none is loaded, else verify the
   loaded one and, once done, start the next; no further navigation item completes the mission.
   Navigation items the vehicle cannot start are skipped; "do" items are started and done at once.
+  Each navigation item says "Mission: N WP" (N RTL, ...) as it starts.
 - set_current: running, jump there; stopped or complete, make it where a resume starts (0 = item 1).
 """
 
@@ -26,6 +27,14 @@ CMD_NAV_RETURN_TO_LAUNCH = 20
 CMD_NAV_LAST = 95  # MAV_CMD_NAV_LAST: ids up to this are navigation items
 
 STOPPED, RUNNING, COMPLETE = "stopped", "running", "complete"
+_TYPE_NAMES = {CMD_NAV_WAYPOINT: "WP", CMD_NAV_RETURN_TO_LAUNCH: "RTL"}  # Mission_Command::type()
+INFO = 6  # MAV_SEVERITY_INFO
+
+
+def _start(runner: MissionRunner, index: int, item: MissionItem) -> bool:
+    """AP_Mission::start_command: "Mission: N WP", then the vehicle's own start."""
+    runner.say(INFO, f"Mission: {index} {_TYPE_NAMES.get(item.command, str(item.command))}")
+    return runner.start_command(index, item)
 
 
 @dataclass(frozen=True)
@@ -50,6 +59,8 @@ class MissionItem:
 
 class MissionRunner(Protocol):
     """What the vehicle does with items (ModeAuto's start_command / verify_command / exit_mission)."""
+
+    def say(self, severity: int, text: str) -> None: ...
 
     def start_command(self, index: int, item: MissionItem) -> bool: ...
 
@@ -143,7 +154,7 @@ class Mission:
         self.state = RUNNING
         item = self.item(self.nav_index)
         assert item is not None
-        self._nav_loaded = runner.start_command(self.nav_index, item)
+        self._nav_loaded = _start(runner, self.nav_index, item)
 
     def update(self, runner: MissionRunner) -> None:
         if self.state != RUNNING or not self.items:
@@ -182,7 +193,7 @@ class Mission:
             if not item.is_nav:
                 continue  # "do" items: started and done at once (none is emulated)
             self.nav_index = i
-            if runner.start_command(i, item):
+            if _start(runner, i, item):
                 self._nav_loaded = True
                 return True
         return False

@@ -187,6 +187,9 @@ class Navigation:
             self.stop_vehicle()
 
     # ------------------------------------------------------------------ AUTO
+    def say(self, severity: int, text: str) -> None:
+        self._say(severity, text)
+
     def _auto_update(self) -> None:
         if not self.armed and not self.mission.present():
             self.auto_sub = "stop"
