@@ -9,11 +9,11 @@ mode_guided.cpp (_enter: stop). What is kept:
   the acceleration limit to the speed controller (the stop controller when it is 0), the turn rate to
   the turn-rate controller; the results are the motors' throttle and steering (sitl/motors.py).
 - AUTO: refused without a mission ("No Mission. Can't set AUTO."); starts stopped and starts or resumes
-  the mission on its first loop. NAV_WAYPOINT: drive there (with the next navigation item as the next
-  destination unless param1, the hold time in seconds, is set), "Reached waypoint #N", then after the
-  hold time MISSION_ITEM_REACHED N and the next item. NAV_RETURN_TO_LAUNCH: RTL inside AUTO. Other
-  navigation items are skipped. At the end "Mission Complete" and MIS_DONE_BEHAVE: 0 (and 1, as no
-  LOITER is emulated) stop in AUTO, 2 ACRO, 3 MANUAL.
+  the mission (MIS_RESTART 1: from item 1) on its first loop. NAV_WAYPOINT: drive there (with the next
+  navigation item as the next destination unless param1, the hold time in seconds, is set), "Reached
+  waypoint #N", then after the hold time MISSION_ITEM_REACHED N and the next item.
+  NAV_RETURN_TO_LAUNCH: RTL inside AUTO. Other navigation items are skipped. At the end "Mission
+  Complete" and MIS_DONE_BEHAVE: 0 (and 1, as no LOITER is emulated) stop in AUTO, 2 ACRO, 3 MANUAL.
 - RTL: refused before home is set; drives to home at RTL_SPEED (WP_SPEED when 0), says "Reached
   destination" and stops.
 - SMART_RTL: refused without an active path (sitl/smartrtl.py); cleans the path up, then drives back
@@ -196,7 +196,10 @@ class Navigation:
         if self._waiting_to_start:
             if self.nav is not None:  # ArduPilot waits for an EKF origin
                 self._waiting_to_start = False
-                self.mission.start_or_resume(self)
+                if self._param("MIS_RESTART") == 1:  # AP_Mission::start_or_resume: 1 restarts from item 1
+                    self.mission.start(self)
+                else:
+                    self.mission.start_or_resume(self)
         else:
             self.mission.update(self)
         if self.auto_sub == "wp":

@@ -131,6 +131,34 @@ def test_disarmed_outside_auto_the_mission_starts_again_from_its_first_item() ->
     assert g.texts()[-1] == "Mission: 1 WP"
 
 
+@pytest.mark.parametrize(("restart", "first"), [(0, "Mission: 2 WP"), (1, "Mission: 1 WP")])
+def test_back_in_auto_the_mission_resumes_or_restarts_per_mis_restart(restart: int, first: str) -> None:
+    g = rig()
+    g.emu.set_param("MIS_RESTART", restart)
+    mission(g, SQUARE)
+    g.set_mode(MODE_AUTO)
+    assert g.run_until(lambda: len(g.of("MISSION_ITEM_REACHED")) == 1, 30.0)
+    g.run(1.0)
+    g.set_mode(MODE_HOLD)
+    g.run(2.0)
+    g.set_mode(MODE_AUTO)
+    g.run(0.5)
+    assert g.texts()[-1] == first
+
+
+def test_a_hold_time_delays_the_item_reached_and_the_next_leg() -> None:
+    g = rig()
+    items = [g.waypoint(0, 0.0, 0.0), g.waypoint(1, 8.0, 0.0, hold_s=3.0), g.waypoint(2, 16.0, 0.0)]
+    assert g.upload(items) == P.MAV_MISSION_ACCEPTED
+    g.set_mode(MODE_AUTO)
+    assert g.run_until(lambda: "Reached waypoint #1. Loiter for 3 seconds" in g.texts(), 30.0)
+    said = g.emu.sim_time_s
+    assert g.run_until(lambda: bool(g.of("MISSION_ITEM_REACHED")), 10.0)
+    assert 2.9 <= g.emu.sim_time_s - said <= 3.1
+    assert abs(g.emu.truth.v_m_s) < 0.05 and dist(g, 8.0, 0.0) < 0.5  # stopped there meanwhile
+    assert g.run_until(lambda: "Mission Complete" in g.texts(), 30.0)
+
+
 def test_rtl_drives_home_at_rtl_speed_and_stops_within_wp_radius_of_it() -> None:
     g = rig()
     drive_out(g, 5.0)
