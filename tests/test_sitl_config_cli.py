@@ -43,6 +43,16 @@ def test_nothing_in_sitl_imports_rover_bridge() -> None:
                 assert name.split(".")[0] != "rover_bridge", f"{path} imports {name}"
 
 
+def test_no_class_in_sitl_is_over_300_lines() -> None:
+    sizes = {}
+    for path in sorted(SITL_DIR.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                sizes[f"{path.name}:{node.name}"] = (node.end_lineno or node.lineno) - node.lineno + 1
+    assert "autopilot.py:Autopilot" in sizes
+    assert {name: n for name, n in sizes.items() if n > 300} == {}
+
+
 def test_vehicle_profile_loads_and_bad_profile_lists_every_problem(tmp_path: Path) -> None:
     good = tmp_path / "good.toml"
     good.write_text("[vehicle]\ntrue_track_width_m = 0.32\nencoder_cpr = 2048\nstart_armed = true\n")
