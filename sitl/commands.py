@@ -16,6 +16,7 @@ from sitl.mav import MAVLinkMessage, mavlink
 from sitl.modes import MODE_AUTO
 from sitl.motors import FUNC_THROTTLE_LEFT, FUNC_THROTTLE_RIGHT
 from sitl.rc import NUM_SERVOS
+from sitl.sensors import wire_int
 from sitl.streams import MAPPED
 
 if TYPE_CHECKING:
@@ -43,7 +44,7 @@ def handle_command(ap: Autopilot, msg: MAVLinkMessage, command: int, params: tup
     elif command == _P.MAV_CMD_DO_SET_MODE:
         result = ACCEPTED if set_mode(ap, int(p1), int(p2)) else FAILED
     elif command == _P.MAV_CMD_DO_SET_SERVO:
-        result = do_set_servo(ap, int(p1), int(p2))
+        result = do_set_servo(ap, wire_int(p1, "uint8_t"), wire_int(p2, "uint16_t"))  # C's casts
     elif command == _P.MAV_CMD_SET_MESSAGE_INTERVAL:
         result = set_message_interval(ap, int(p1), p2, p3)
     elif command == _P.MAV_CMD_REQUEST_MESSAGE:

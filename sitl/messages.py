@@ -16,6 +16,7 @@ from sitl.mission import COMPLETE, RUNNING
 from sitl.modes import AUTOPILOT_MODES, MODE_AUTO, MODE_GUIDED, MODE_HOLD
 from sitl.physics import PhysicsState
 from sitl.rc import NUM_RC
+from sitl.sensors import G_M_S2, accel_reading_m_s2, fit_to_wire, fitted
 
 if TYPE_CHECKING:
     from sitl.autopilot import Autopilot
@@ -27,6 +28,7 @@ PID_AXIS_STEER = 5  # PID_TUNING_STEER
 _NO_MISSION, _NOT_STARTED, _ACTIVE, _COMPLETE = 1, 2, 3, 5
 
 
+@fitted  # every field saturates at its wire type's range, as the C conversions on the autopilot do
 def build(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMessage:
     """Build one message of a stream from the current state."""
     boot_ms = ap.time_boot_ms(now_us)
@@ -53,10 +55,11 @@ def build(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMe
     if msg_id == _P.MAVLINK_MSG_ID_ATTITUDE:
         return m.attitude_encode(boot_ms, 0.0, 0.0, ap.heading_rad(s), 0.0, 0.0, s.gyro_rad_s)
     if msg_id in (_P.MAVLINK_MSG_ID_RAW_IMU, _P.MAVLINK_MSG_ID_SCALED_IMU):
-        # mG and mrad/s in FRD: x forward, y right, z down (gravity reads -1 g).
-        ax = round(s.accel_m_s2 / 9.80665 * 1000.0)
-        ay = round(s.v_m_s * s.yaw_rate_rad_s / 9.80665 * 1000.0)
-        gz = round(s.gyro_rad_s * 1000.0)
+        # mG and mrad/s in FRD: x forward, y right, z down (gravity reads -1 g); the accelerometer
+        # saturates at +-16 g, the gyro (already in its range) at int16 in mrad/s (sitl/sensors.py).
+        ax = accel_reading_m_s2(s.accel_m_s2) / G_M_S2 * 1000.0
+        ay = accel_reading_m_s2(s.v_m_s * s.yaw_rate_rad_s) / G_M_S2 * 1000.0
+        gz = s.gyro_rad_s * 1000.0
         if msg_id == _P.MAVLINK_MSG_ID_RAW_IMU:
             return m.raw_imu_encode(boot_us, ax, ay, -1000, 0, 0, gz, 0, 0, 0)
         return m.scaled_imu_encode(boot_ms, ax, ay, -1000, 0, 0, gz, 0, 0, 0)
@@ -88,8 +91,8 @@ def build(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMe
             lat_deg, lon_deg = ap.lat_lon_of(*(ext if ext is not None else (s.x_m, s.y_m)))
         vn, ve = s.v_m_s * math.cos(s.yaw_rad), s.v_m_s * math.sin(s.yaw_rad)
         hdg = round(math.degrees(ap.heading_rad(s)) * 100.0) % 36000
-        return m.global_position_int_encode(boot_ms, round(lat_deg * 1e7), round(lon_deg * 1e7), 584_000, 0,
-                                            round(vn * 100.0), round(ve * 100.0), 0, hdg)
+        return m.global_position_int_encode(boot_ms, lat_deg * 1e7, lon_deg * 1e7, 584_000, 0,
+                                            vn * 100.0, ve * 100.0, 0, hdg)
     if msg_id == _P.MAVLINK_MSG_ID_SIMSTATE:
         lat_deg, lon_deg = ap.lat_lon_of(s.x_m, s.y_m)
         lateral_m_s2 = s.v_m_s * s.yaw_rate_rad_s
@@ -103,14 +106,19 @@ def build(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMe
             0.0,
             0.0,
             s.yaw_rate_rad_s,
-            round(lat_deg * 1e7),
-            round(lon_deg * 1e7),
+            lat_deg * 1e7,
+            lon_deg * 1e7,
         )
     raise ValueError(f"cannot build message id {msg_id}")
 
 
 def build_all(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> list[MAVLinkMessage]:
-    """The messages one due stream slot (or request) of ``msg_id`` produces (none, one or two)."""
+    """The messages one due stream slot (or request) of ``msg_id`` produces (none, one or two), each
+    fitted to its wire types as ``build``'s are."""
+    return [fit_to_wire(msg) for msg in _build_all(ap, msg_id, now_us, s)]
+
+
+def _build_all(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> list[MAVLinkMessage]:
     m = ap.mav
     rover = ap.rover
     if msg_id == _P.MAVLINK_MSG_ID_NAV_CONTROLLER_OUTPUT:
