@@ -59,7 +59,6 @@ class WPNav:
         self._leg_time_s = 0.0
         self._track_scalar = 1.0
         self._last_ms: int | None = None
-        self._next: Vec | None = None
         self.speed_max = 0.0
         self.speed = 0.0  # outputs of the last update
         self.turn_rate_rad_s = 0.0
@@ -134,7 +133,6 @@ class WPNav:
                 # stop in its own length; the corner speed here is held to what allows that.
                 end_m_s = min(self._corner_speed(turn), stoppable_speed(
                     _norm(_sub(next_dest, dest)), self.pos.accel_max, self.pos.jerk_max))
-        self._next = next_dest
         p = self.pos
         self._leg = LegProfile(_norm(_sub(dest, self.origin)), self.speed_max, p.accel_max, p.jerk_max,
                                start_m_s, end_m_s)
