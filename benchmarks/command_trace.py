@@ -14,7 +14,8 @@ shown beside it.
 
 With --base, both trees run the same scenarios: the test files are taken from the base tree (the
 scenarios that existed before the change) unless --tests-from says otherwise, each tree's own code is
-imported (PYTHONPATH, from a scratch directory, so neither tree's root shadows it), and the table lists
+imported (PYTHONPATH; the worker is a script, so the working directory, the scenarios' tree, does not
+shadow it), and the table lists
 every scenario whose fingerprint differs. Run the base against itself (--base equal to this tree) to see
 which scenarios are not deterministic (real sockets, threads, wall time): they are marked in the table.
 The soaks' "modes" variants use only modes whose meaning the change keeps (MANUAL, ACRO, STEERING,
@@ -403,7 +404,9 @@ def run_tree(code: Path, tests_dir: Path, soak_only: bool, keyword: str | None) 
             cmd.append("--soak-only")
         if keyword:
             cmd += ["-k", keyword]
-        proc = subprocess.run(cmd, cwd=scratch, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        # cwd: the scenarios' tree (tests open params/ relative to it); the script's own directory, not
+        # cwd, heads sys.path, so the code still comes from PYTHONPATH (checked below).
+        proc = subprocess.run(cmd, cwd=tests_dir.parent, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                               text=True)
         if not out.exists():
             sys.stdout.write(proc.stdout)
