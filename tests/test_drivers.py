@@ -18,6 +18,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_command_core import Rig, overrides, profile, texts
 
 from rover_bridge.app.composition import BridgeCore
@@ -218,6 +220,27 @@ def test_the_speed_loop_holds_each_wheel_at_its_share_of_the_demand() -> None:
     assert rig.core.last_wheel_pwm is not None and rig.core.last_wheel_pwm.left_us > 1800
 
 
+_RIGS: dict[tuple[int, int, int], DriveRig] = {}
+
+
+@settings(derandomize=True, database=None, deadline=None, max_examples=300)
+@given(st.integers(800, 2200), st.integers(800, 2200), st.sampled_from([(1000, 1500, 2000), (1100, 1500, 1900),
+                                                                        (1000, 1450, 2000)]))
+def test_each_wheel_gets_its_fraction_of_its_top_speed(left_us: int, right_us: int,
+                                                       pwm: tuple[int, int, int]) -> None:
+    lo, trim, hi = pwm
+    rig = _RIGS.get(pwm) or _RIGS.setdefault(pwm, DriveRig(profile(demand={"pwm_min": lo, "pwm_trim": trim,
+                                                                            "pwm_max": hi})))
+    driver = rig.core.autopilot
+    demand = driver.to_demand(left_us, right_us)
+    for us, got in ((left_us, demand.left), (right_us, demand.right)):
+        assert -1.0 <= got <= 1.0 and (got > 0) == (us > trim) and (got < 0) == (us < trim)
+        assert driver.fraction(us + 1) >= got  # monotonic
+    wheels = rig.core.stage.drive.to_wheel_speeds(demand.twist)  # IK undoes the FK: each wheel its share
+    assert wheels.left_rad_s == pytest.approx(demand.left * TOP_RAD_S, abs=1e-9)
+    assert wheels.right_rad_s == pytest.approx(demand.right * TOP_RAD_S, abs=1e-9)
+
+
 # ------------------------------------------------------------------ handovers (fence, failsafe actions: mode changes)
 
 
@@ -341,6 +364,13 @@ def test_an_unconfigured_demand_output_is_said_not_driven_through() -> None:
     assert texts(rig.servo(0.03, 0, 0)) == []  # disarmed with MOT_SAFE_DISARM: no pulses is right
 
 
+def test_no_pulses_while_disarmed_is_no_demand_not_full_reverse() -> None:
+    rig = DriveRig(profile(safety={"require_armed": False}))  # as the SITL profile: passthrough drives disarmed
+    rig.heartbeat(0.0, armed=False, mode=AUTO)
+    assert overrides(rig.servo(0.01, 0, 0)) == [(1500, 1500)] and rig.core.commanded.v_m_s == 0.0
+    assert overrides(rig.servo(0.02, 1750, 1750)) == [(1750, 1750)]  # require_armed off: a demand is followed
+
+
 def test_a_demand_stuck_at_trim_while_the_autopilot_has_far_to_go_is_said() -> None:
     rig = DriveRig(fast())
     out: list[Outgoing] = []
@@ -444,3 +474,29 @@ def test_the_shipped_ardupilot_parameters_agree_with_the_shipped_profiles(
     assert parm["MAV_GCS_SYSID"] == o.override_source_system
     assert 0.8 * parm["SCHED_LOOP_RATE"] >= d.rate_hz  # Rover's shortest interval: 1.25 loop periods
     assert parm["RC_OVERRIDE_TIME"] > 2.0 / p.command.rate_hz
+
+
+# ------------------------------------------------------------------ through the shell, against the emulator
+
+
+def test_through_the_shell_auto_asks_the_emulator_for_the_demand_and_says_an_unconfigured_output() -> None:
+    # The emulator's outputs 5/6 have no function (0): it reports them as 0, as ArduPilot reports an output
+    # nothing drives. In AUTO the bridge asks for SERVO_OUTPUT_RAW at 40 Hz and says what to set.
+    from lockstep import Lockstep
+
+    lock = Lockstep(Profile())
+    try:
+        lock.run_for(2.0)
+        assert len([m for t, m in lock.view.of("SERVO_OUTPUT_RAW") if t > 1.0]) <= 5  # MANUAL: its own rate
+        lock.gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0,
+                                       mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, AUTO, 0, 0, 0, 0, 0)
+        lock.run_for(3.0)
+        late = [t for t, m in lock.view.of("SERVO_OUTPUT_RAW") if t > 4.0]
+        assert len(late) == pytest.approx(40, abs=2)  # forwarded to the GCS, at the rate the bridge asked for
+        said = [m.text for t, m in lock.view.of("STATUSTEXT")]
+        assert "RB: AUTO: the autopilot drives" in said
+        assert "RB: SERVO5 reads 0: set SERVO5_FUNCTION 73" in said
+        assert lock.core.command.counters["demand.no_pulses"] >= 80 and "demand.taken" not in lock.core.command.counters
+        assert lock.core.estimate.streams.counters["stream_fallbacks"] == 1  # WHEEL_DISTANCE's, as before
+    finally:
+        lock.close()

@@ -27,6 +27,7 @@ from rover_bridge.params import Profile
 HEARTBEAT_PERIOD_S = 1.0
 _SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
 _HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
+_DEMAND_IDS = frozenset(getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in CommandCore.DEMAND_READS)
 # A gyro sample waits at most this long for the next message or tick before the estimate flow gets it.
 GYRO_HOLD_MAX_S = 0.025
 
@@ -124,6 +125,8 @@ class BridgeCore:
         elif (msg_id == _HEARTBEAT and self._demand is not None and not self._demand.wanted and from_autopilot
               and self.command.demand_wanted):
             re_ = Reaction(re_.consumed, (*re_.out, *self.estimate.streams.want(self._demand.name, now_s)))
+            self._ap_always = self._ap_always | _DEMAND_IDS  # decoded from now on
+            self._autopilot_reads = self._ap_always | self._ap_gyro
         if not (rc.out or re_.out or held):
             return re_ if re_.consumed else rc
         return Reaction(consumed=rc.consumed or re_.consumed, out=(*held, *rc.out, *re_.out))

@@ -85,7 +85,7 @@ class Arbiter:
         out: list[Outgoing] = []
         for watch in self.watchers:
             out += watch(now_s)
-        out += self.modes.announce(self.vehicle.mode, now_s)
+        out += self.modes.announce(self.vehicle.driving_mode, now_s)
         out += self._update(now_s)
         if self.identity.vehicle_system_id is not None and (force_output or self.state is not before):
             out += self._output(now_s, answer)
@@ -109,7 +109,7 @@ class Arbiter:
             return CommandState.REFUSED if self.gates.refused else CommandState.IDLE
         if active.braking(now_s):
             return CommandState.BRAKING
-        if not self.modes.allows(active.name, self.vehicle.mode):
+        if not self.modes.allows(active.name, self.vehicle.driving_mode):
             self.brake_to_stop(now_s)  # the mode no longer gives it the wheels (a target's watch says why)
             return CommandState.BRAKING
         return CommandState.ACTIVE

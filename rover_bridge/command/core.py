@@ -57,9 +57,10 @@ _OVER = (CommandState.STOPPING, CommandState.STOPPED)
 class CommandCore:
     """Messages and the current time in, override messages out (see the module doc for the rules)."""
 
-    # What handle() reads from the autopilot link (BridgeCore decodes nothing else from it).
-    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC", "SERVO_OUTPUT_RAW"}) \
-        | AUTOPILOT_NAV_ECHOES
+    # What handle() reads from the autopilot link (BridgeCore decodes nothing else from it); the demand only
+    # once the autopilot has driven in one of its modes (demand_wanted): until then nobody needs it decoded.
+    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC"}) | AUTOPILOT_NAV_ECHOES
+    DEMAND_READS = frozenset({"SERVO_OUTPUT_RAW"})
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter,
                  pose_source: PoseSource | None = None) -> None:
@@ -105,7 +106,7 @@ class CommandCore:
 
     @property
     def demand_wanted(self) -> bool:  # the autopilot is in a mode it drives in: its demand is needed
-        return self.modes.allows(AUTOPILOT, self.vehicle.mode)
+        return self.modes.allows(AUTOPILOT, self.vehicle.driving_mode)
 
     @property
     def stop_confirmed(self) -> bool | None:

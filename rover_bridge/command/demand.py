@@ -24,6 +24,7 @@ gives ArduPilot the raw motor, bypasses the limits and the speed loop, and is wh
 - Reports are taken only in a mode the table gives the autopilot, from the vehicle's autopilot, and only
   after the safety gates (link, disarm, faults, calibrate, stop modes) let a driver hold the wheels.
 - A demand output reading 0 while armed (no pulses: SERVOn_FUNCTION not 73/74) is said, and the wheels brake;
+  disarmed it is no demand (MOT_SAFE_DISARM stops the pulses), never full reverse;
   so is a demand that stays at trim for STUCK_S while the autopilot reports (NAV_CONTROLLER_OUTPUT) a
   waypoint farther than STUCK_DISTANCE_M away. Both are configuration mistakes to fix, not to drive through.
 
@@ -52,6 +53,7 @@ from rover_bridge.params import Profile
 STUCK_S = 3.0  # a demand at trim this long while the autopilot says it has far to go: not configured
 STUCK_DISTANCE_M = 2.0
 NAV_FRESH_S = 2.0  # NAV_CONTROLLER_OUTPUT younger than this counts as "the autopilot says"
+MIN_PULSE_US = 400  # below: not a servo pulse (0 = none)
 _TAKES = frozenset({CommandState.IDLE, CommandState.ACTIVE, CommandState.BRAKING, CommandState.REFUSED})
 
 
@@ -126,8 +128,11 @@ class AutopilotNavigation:
         return int(getattr(msg, self._fields[0])), int(getattr(msg, self._fields[1]))
 
     def fraction(self, pwm_us: int) -> float:
-        """A demand output's PWM as a fraction of full throttle, [-1, 1] (trim 0; each half its own scale)."""
+        """A demand output's PWM as a fraction of full throttle, [-1, 1] (trim 0; each half its own scale). No
+        pulse (0, what a disarmed ArduPilot with MOT_SAFE_DISARM reports) is no demand, never full reverse."""
         p = self.params
+        if pwm_us < MIN_PULSE_US:
+            return 0.0
         if pwm_us >= p.pwm_trim:
             return min(1.0, (pwm_us - p.pwm_trim) / (p.pwm_max - p.pwm_trim))
         return max(-1.0, (pwm_us - p.pwm_trim) / (p.pwm_trim - p.pwm_min))
@@ -147,7 +152,7 @@ class AutopilotNavigation:
     def handle(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
         """SERVO_OUTPUT_RAW: take the wheels with the demand in it, when the mode and the gates allow."""
         pwm = self.decode(msg)
-        if pwm is None or not self.modes.allows(AUTOPILOT, self.vehicle.mode):
+        if pwm is None or not self.modes.allows(AUTOPILOT, self.vehicle.driving_mode):
             self._trim_since = None
             return NOTHING
         out = self.wheels.advance(now_s, force_output=False)  # bring link / armed / mode state up to date
@@ -168,8 +173,8 @@ class AutopilotNavigation:
             return None
         outputs = (self.params.left_output, self.params.right_output)
         for value, output, function in zip(pwm, outputs, (73, 74), strict=True):
-            if value == 0:
-                text = f"RB: SERVO{output} reads 0: set SERVO{output}_FUNCTION {function}"
+            if value < MIN_PULSE_US:
+                text = f"RB: SERVO{output} reads {value}: set SERVO{output}_FUNCTION {function}"
                 return self._say("demand.no_pulses", text, now_s)
         nav = self._wp_dist
         far = nav is not None and now_s - nav[0] < NAV_FRESH_S and nav[1] >= STUCK_DISTANCE_M
@@ -180,7 +185,7 @@ class AutopilotNavigation:
         if now_s - since < STUCK_S:
             return None
         left, right = outputs
-        return self._say("demand.stuck", f"RB: {mode_name(self.vehicle.mode)}: SERVO{left}/{right} at trim: "
+        return self._say("demand.stuck", f"RB: {mode_name(self.vehicle.driving_mode)}: SERVO{left}/{right} at trim: "
                          "FUNCTION 73/74?", now_s)
 
     def _say(self, key: str, text: str, now_s: float) -> list[Outgoing]:

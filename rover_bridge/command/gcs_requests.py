@@ -137,7 +137,7 @@ class GcsRequests:
         if state is CommandState.DIRECT:
             self._count("dropped.direct")
             return Reaction(consumed=True, out=tuple(out))
-        mode = self.vehicle.mode
+        mode = self.vehicle.driving_mode
         if state is CommandState.HOLD or not self.modes.allows(GCS, mode):
             # The GCS pressed Hold: a request still streaming from a planner must not undo it. Nor may one undo
             # a mode the autopilot drives in (AUTO, RTL ...): the mode decides who drives.

@@ -68,8 +68,8 @@ class SafetyGates:
         if v.stopping(now_s):
             self.hold_text = None
             return CommandState.HOLD
-        if not self.modes.listed(v.mode):
-            text = f"RB: {mode_name(v.mode)}: no driver, braking, then neutral"
+        if not self.modes.listed(v.driving_mode):
+            text = f"RB: {mode_name(v.driving_mode)}: no driver, braking, then neutral"
             self.hold_text = (mavlink.MAV_SEVERITY_WARNING, text)
             return CommandState.HOLD
         return None

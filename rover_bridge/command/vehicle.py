@@ -68,6 +68,13 @@ class VehicleState:
         """The mode as best known now: an accepted change the heartbeat has not reported yet, else the heartbeat's."""
         return self.anticipated_mode if self.anticipated_mode is not None else self.custom_mode
 
+    @property
+    def driving_mode(self) -> int | None:
+        """The mode that picks the driver: as `mode`, except that an accepted change to a stop mode is left to
+        the stop's own anticipation (`stopping`), which lapses if the heartbeat does not confirm it."""
+        anticipated = self.anticipated_mode
+        return anticipated if anticipated is not None and anticipated not in self.stop_modes else self.custom_mode
+
     def link_lost(self, now_s: float) -> bool:
         # Same expression as the deadlines: `now - last >= timeout` can round below the timeout at exactly
         # that deadline, and the shell would wake again and again for a tick that does nothing.
