@@ -85,8 +85,12 @@ class Arbiter:
         out: list[Outgoing] = []
         for watch in self.watchers:
             out += watch(now_s)
-        out += self.modes.announce(self.vehicle.driving_mode, now_s)
-        out += self._update(now_s)
+        mode = self.vehicle.driving_mode
+        if mode != self.modes.said_mode:
+            out += self.modes.announce(mode, now_s)
+        state = self.evaluate(now_s)
+        if state is not before:
+            out += self.set_state(state, now_s, self._text(state))
         if self.identity.vehicle_system_id is not None and (force_output or self.state is not before):
             out += self._output(now_s, answer)
         return out
@@ -109,20 +113,18 @@ class Arbiter:
             return CommandState.REFUSED if self.gates.refused else CommandState.IDLE
         if active.braking(now_s):
             return CommandState.BRAKING
-        if not self.modes.allows(active.name, self.vehicle.driving_mode):
+        if self.vehicle.driving_mode not in self.modes.of[active.name]:
             self.brake_to_stop(now_s)  # the mode no longer gives it the wheels (a target's watch says why)
             return CommandState.BRAKING
         return CommandState.ACTIVE
 
-    def _update(self, now_s: float) -> list[Outgoing]:
-        """evaluate(), and the new state said (a stop for an unlisted mode, a stale demand: their own words)."""
-        state = self.evaluate(now_s)
-        text = None
+    def _text(self, state: CommandState) -> tuple[int, str] | None:
+        """What a new state says when not its usual (a stop for a mode with no driver, a stale demand)."""
         if state is CommandState.HOLD:
-            text = self.gates.hold_text
-        elif state is CommandState.BRAKING and self.active is not None:
-            text = self.active.braking_text
-        return self.set_state(state, now_s, text)
+            return self.gates.hold_text
+        if state is CommandState.BRAKING and self.active is not None:
+            return self.active.braking_text
+        return None
 
     def set_state(self, new: CommandState, now_s: float, text: tuple[int, str] | None = None) -> list[Outgoing]:
         if new is self.state:
@@ -164,7 +166,8 @@ class Arbiter:
         if self.state is CommandState.BRAKING and stage.limiter.current == _ZERO:
             # Stopped: the neutral just built is the last braking output; from now on IDLE.
             self.drop_request()
-            out += self._update(now_s)
+            state = self.evaluate(now_s)
+            out += self.set_state(state, now_s, self._text(state))
         return out
 
     def _fault(self, fault: WiringFault, now_s: float) -> list[Outgoing]:

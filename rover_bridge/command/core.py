@@ -131,8 +131,9 @@ class CommandCore:
     # ----------------------------------------------------------------- SubCore protocol
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
-        if self.state in _OVER:
-            if self.state is CommandState.STOPPING and self.stopper.answered(inc, now_s):
+        state = self.wheels.state
+        if state in _OVER:
+            if state is CommandState.STOPPING and self.stopper.answered(inc, now_s):
                 return Reaction(consumed=True, out=tuple(self.wheels.set_state(CommandState.STOPPED, now_s)))
             return NOTHING
         msg = inc.msg
@@ -169,9 +170,10 @@ class CommandCore:
         return NOTHING
 
     def tick(self, now_s: float) -> list[Outgoing]:
-        if self.state is CommandState.STOPPED:
+        state = self.wheels.state
+        if state is CommandState.STOPPED:
             return []
-        if self.state is CommandState.STOPPING:
+        if state is CommandState.STOPPING:
             if self.stopper.timed_out(now_s):
                 return self.wheels.set_state(CommandState.STOPPED, now_s, STOP_UNCONFIRMED)
             return self.stopper.messages(now_s) if self.stopper.resend_due(now_s) else []
@@ -185,15 +187,16 @@ class CommandCore:
         return out
 
     def next_deadline_s(self, now_s: float) -> float:
-        if self.state is CommandState.STOPPING:
+        state = self.wheels.state
+        if state is CommandState.STOPPING:
             return self.stopper.deadline_s()
-        if self.state is CommandState.STOPPED or self.identity.vehicle_system_id is None:
+        if state is CommandState.STOPPED or self.identity.vehicle_system_id is None:
             return now_s + self.stage.period_s  # nothing can be sent yet; look again a period later
         # Runs on every turn of the loop: plain comparisons, no lists.
         nxt = self.stage.next_output_s
         first = now_s if nxt is None else nxt
         active = self.wheels.active
-        if self.state is CommandState.ACTIVE and active is not None:
+        if state is CommandState.ACTIVE and active is not None:
             deadline = active.deadline_s()  # a request's timeout; a target's feedback and GCS silence
             if deadline is not None and deadline < first:
                 first = deadline
@@ -201,7 +204,7 @@ class CommandCore:
         if change is not None:
             first = min(first, change.deadline_s)
         last_hb = self.vehicle.last_heartbeat_s
-        if last_hb is not None and self.state is not CommandState.LINK_LOST:
+        if last_hb is not None and state is not CommandState.LINK_LOST:
             first = min(first, last_hb + self.vehicle.heartbeat_timeout_s)
         return first
 

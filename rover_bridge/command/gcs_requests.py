@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from rover_bridge.command.drivers import CommandState, Wheels
-from rover_bridge.command.modes import GCS, ModeTable, mode_name
+from rover_bridge.command.modes import ModeTable, mode_name
 from rover_bridge.command.setpoints import BodyVelocity, HeadingVelocity, Rejected, Request, decode_request
 from rover_bridge.command.vehicle import VehicleState
 from rover_bridge.kinematics import Twist2D
@@ -138,7 +138,7 @@ class GcsRequests:
             self._count("dropped.direct")
             return Reaction(consumed=True, out=tuple(out))
         mode = self.vehicle.driving_mode
-        if state is CommandState.HOLD or not self.modes.allows(GCS, mode):
+        if state is CommandState.HOLD or mode not in self.modes.gcs:
             # The GCS pressed Hold: a request still streaming from a planner must not undo it. Nor may one undo
             # a mode the autopilot drives in (AUTO, RTL ...): the mode decides who drives.
             why = "hold" if state is CommandState.HOLD else "mode"

@@ -295,7 +295,7 @@ class PositionTargets:
         if result != mavlink.MAV_RESULT_ACCEPTED:
             return self._refused(change.msg, Refused("mode", command_result=mavlink.MAV_RESULT_FAILED), source,
                                  now_s, text=f"GUIDED refused by the autopilot ({result})")
-        self.vehicle.anticipated_mode = min(self.guided_modes)
+        self.vehicle.anticipate(min(self.guided_modes))
         reason = self._state_refusal(now_s)
         if reason is not None:
             return self._refused(change.msg, Refused(reason), source, now_s, text=reason)

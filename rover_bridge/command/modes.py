@@ -48,19 +48,18 @@ class ModeTable:
         self.targets = frozenset(params.targets)
         self.autopilot = frozenset(params.autopilot)
         self.stop = frozenset(params.stop)
+        self.of = {GCS: self.gcs, TARGETS: self.targets, AUTOPILOT: self.autopilot}  # driver -> its modes
+        self.known = self.gcs | self.targets | self.autopilot | self.stop
         self.reporter = reporter
         self._said_owner: str | None = None
+        self.said_mode: int | None = -1  # the mode announce() last looked at (-1: none yet)
 
     def allows(self, driver: str, mode: int | None) -> bool:
-        if driver == GCS:
-            return mode in self.gcs
-        if driver == TARGETS:
-            return mode in self.targets
-        return mode in self.autopilot
+        return mode in self.of[driver]
 
     def listed(self, mode: int | None) -> bool:
         """Some driver (or the stop list) is named for this mode."""
-        return mode in self.gcs or mode in self.targets or mode in self.autopilot or mode in self.stop
+        return mode in self.known
 
     def owner(self, mode: int | None) -> str:
         if mode in self.autopilot:
@@ -70,6 +69,9 @@ class ModeTable:
 
     def announce(self, mode: int | None, now_s: float) -> list[Outgoing]:
         """Say when the autopilot's navigation takes the wheels or gives them back to the bridge's drivers."""
+        if mode == self.said_mode:
+            return []  # the common case, every output: nothing changed
+        self.said_mode = mode
         owner = self.owner(mode)
         before, self._said_owner = self._said_owner, owner
         if owner == before or AUTOPILOT not in (owner, before) or owner not in _SAY:

@@ -55,9 +55,10 @@ class SafetyGates:
     def gate(self, now_s: float) -> CommandState | None:
         """The state a safety path imposes now (None: the drivers may hold the wheels)."""
         v = self.vehicle
-        if v.last_heartbeat_s is None:
+        last = v.last_heartbeat_s
+        if last is None:
             return CommandState.WAITING
-        if v.link_lost(now_s):
+        if now_s >= last + v.heartbeat_timeout_s:  # VehicleState.link_lost, inline: this runs on every output
             return CommandState.LINK_LOST
         if self.require_armed and not v.armed:
             return CommandState.DISARMED
@@ -68,7 +69,7 @@ class SafetyGates:
         if v.stopping(now_s):
             self.hold_text = None
             return CommandState.HOLD
-        if not self.modes.listed(v.driving_mode):
+        if v.driving_mode not in self.modes.known:
             text = f"RB: {mode_name(v.driving_mode)}: no driver, braking, then neutral"
             self.hold_text = (mavlink.MAV_SEVERITY_WARNING, text)
             return CommandState.HOLD

@@ -58,6 +58,7 @@ class VehicleState:
         self.armed = False
         self.custom_mode: int | None = None  # the heartbeat's
         self.anticipated_mode: int | None = None  # an accepted DO_SET_MODE's, until the next heartbeat
+        self.driving_mode: int | None = None  # see anticipate(); kept, not computed: read on every output
         self.mode_requested: int | None = None  # the last mode a GCS's DO_SET_MODE asked for
         self.hold_requested_s: float | None = None  # a GCS asked for a stop mode; not yet reported
         self.yaw_cw_rad: float | None = None
@@ -68,12 +69,12 @@ class VehicleState:
         """The mode as best known now: an accepted change the heartbeat has not reported yet, else the heartbeat's."""
         return self.anticipated_mode if self.anticipated_mode is not None else self.custom_mode
 
-    @property
-    def driving_mode(self) -> int | None:
-        """The mode that picks the driver: as `mode`, except that an accepted change to a stop mode is left to
-        the stop's own anticipation (`stopping`), which lapses if the heartbeat does not confirm it."""
-        anticipated = self.anticipated_mode
-        return anticipated if anticipated is not None and anticipated not in self.stop_modes else self.custom_mode
+    def anticipate(self, mode: int | None) -> None:
+        """The mode an accepted DO_SET_MODE asked for (None: the heartbeat's from now on). driving_mode, the mode
+        that picks the driver, follows it, except that a change to a stop mode is left to the stop's own
+        anticipation (`stopping`), which lapses if the heartbeat does not confirm it."""
+        self.anticipated_mode = mode
+        self.driving_mode = mode if mode is not None and mode not in self.stop_modes else self.custom_mode
 
     def link_lost(self, now_s: float) -> bool:
         # Same expression as the deadlines: `now - last >= timeout` can round below the timeout at exactly
@@ -85,7 +86,7 @@ class VehicleState:
         self.last_heartbeat_s = now_s
         self.armed = bool(int(msg.base_mode) & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         self.custom_mode = int(msg.custom_mode)
-        self.anticipated_mode = None  # the heartbeat says the mode from now on
+        self.anticipate(None)  # the heartbeat says the mode from now on
         if self.custom_mode in self.stop_modes:
             self.hold_requested_s = None  # reported: from now on the heartbeat says when it ends
 
@@ -112,7 +113,7 @@ class VehicleState:
         if self.hold_requested_s is not None and result not in _ACK_OK:
             self.hold_requested_s = None  # the autopilot refused the stop mode: its heartbeat governs
         if result == mavlink.MAV_RESULT_ACCEPTED and self.mode_requested is not None:
-            self.anticipated_mode = self.mode_requested  # a GCS's mode change, before its heartbeat
+            self.anticipate(self.mode_requested)  # a GCS's mode change, before its heartbeat
             self.mode_requested = None
 
     def on_attitude(self, msg: MAVLinkMessage, now_s: float) -> None:
