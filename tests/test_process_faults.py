@@ -131,7 +131,7 @@ class WallClockEmulator:
             self.gcs.drain()
 
 
-def one_signal_trial(trial: int, signum: int) -> str:
+def one_signal_trial(trial: int, signum: int, params: str) -> str:
     """Returns '' on success, else a description of what went wrong (collected across threads)."""
     rng = random.Random(1000 + trial)
     emu = Emulator(VehicleConfig(start_armed=True), seed=trial)
@@ -141,7 +141,7 @@ def one_signal_trial(trial: int, signum: int) -> str:
     spy = OverrideSpy(emu)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "rover_bridge", "run", "--params", PARAMS, "--autopilot",
+        [sys.executable, "-m", "rover_bridge", "run", "--params", params, "--autopilot",
          f"udpout:127.0.0.1:{ap_port}", "--gcs", f"udpout:127.0.0.1:{gcs.port}", "--duration", "60"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
     clock = WallClockEmulator(emu, gcs)
@@ -177,9 +177,15 @@ def one_signal_trial(trial: int, signum: int) -> str:
         finish_process(proc, gcs, emu)
 
 
-def test_sigterm_and_sigint_during_motion_release_the_overrides_in_20_trials() -> None:
+def test_sigterm_and_sigint_during_motion_release_the_overrides_in_20_trials(tmp_path: Path) -> None:
+    # These trials are about the signal path. Three bridges starting at once beside this process's
+    # emulators, on a CI machine whose two cores are busy, can miss safety.loop_watchdog_s (0.7 s) once
+    # in a few hundred starts: the stall guard then stops the rover and exits 1, which is its job (it has
+    # its own tests in test_watchdog.py) but not what is checked here.
+    params = tmp_path / "signals.toml"
+    params.write_text("[safety]\nloop_watchdog_s = 10.0\n", encoding="utf-8")
     with ThreadPoolExecutor(max_workers=3) as pool:  # start-up is CPU, the rest mostly waiting: 3 at a time
-        failures = [f for f in pool.map(lambda t: one_signal_trial(*t), TRIALS) if f]
+        failures = [f for f in pool.map(lambda t: one_signal_trial(*t, str(params)), TRIALS) if f]
     assert failures == [], "\n".join(failures)
 
 
