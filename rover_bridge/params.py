@@ -3,7 +3,7 @@
 Every parameter is declared exactly once, as a dataclass field whose metadata carries its
 unit, valid range and one sentence of help (ros2_controllers' generated parameter
 declarations are the model). Everything else is derived from those declarations: the
-loader's checks, `check-params` output and the README's parameter table.
+loader's checks, `check-params` output and the parameter reference (docs/parameters.md).
 
 Loading a bad profile reports every problem at once, each with its key path and what was
 expected, and raises `ConfigError`; nothing starts on a bad profile.
@@ -416,7 +416,7 @@ class Profile:
 
 @dataclass(frozen=True, slots=True)
 class ParamInfo:
-    """One declared parameter, as the README table and check-params show it."""
+    """One declared parameter, as docs/parameters.md and check-params show it."""
 
     section: str
     name: str
@@ -769,7 +769,7 @@ def toml_value(value: Any) -> str:
 
 
 def markdown_table() -> str:
-    """The README's parameter reference, generated from the declarations."""
+    """The parameter reference (docs/parameters.md), generated from the declarations."""
     rows = ["| key | type | unit | default | valid | meaning |", "|---|---|---|---|---|---|"]
     for info in iter_params():
         default = "unset" if info.default is None else toml_value(info.default)

@@ -1,6 +1,6 @@
 """A bridge feeding ArduPilot external navigation restarts mid-drive: ArduPilot's position must not run off.
 
-Emulated autopilot set up as the README says (VISO_TYPE 1, EK3_SRC1_POSXY/VELXY/YAW = 6), with
+Emulated autopilot set up as docs/ardupilot.md says (VISO_TYPE 1, EK3_SRC1_POSXY/VELXY/YAW = 6), with
 sitl/extnav.py standing for ArduPilot's use of ODOMETRY: a new frame at (0, 0, yaw 0) with an unchanged
 reset_counter is a jump it rejects while it fuses the new frame's velocity rotated by the new yaw.
 With odometry.frame 'autopilot' (the default when ODOMETRY goes to the autopilot) the restarted bridge

@@ -1,7 +1,9 @@
-"""The README is part of the product: its parameter table and quick start are checked here."""
+"""The README and docs/ are part of the product: the quick start, the generated parameter reference, the README's
+length, line widths and links are checked here."""
 
 from __future__ import annotations
 
+import argparse
 import re
 import subprocess
 from pathlib import Path
@@ -11,15 +13,58 @@ from rover_bridge.params import iter_params, markdown_table
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text(encoding="utf-8")
+PARAMETERS = REPO / "docs" / "parameters.md"
+README_MAX_LINES = 300
+MARKDOWN_MAX_WIDTH = 120  # characters, outside tables
+
+
+def markdown_files() -> list[Path]:
+    return [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 
 
 def test_parameter_table_is_generated_from_the_declarations() -> None:
-    block = re.search(r"<!-- params:begin -->\n(.*?)<!-- params:end -->", README, re.S)
-    assert block is not None, "README lost its generated parameter table markers"
+    text = PARAMETERS.read_text(encoding="utf-8")
+    block = re.search(r"<!-- params:begin -->\n(.*?)<!-- params:end -->", text, re.S)
+    assert block is not None, "docs/parameters.md lost its generated parameter table markers"
     assert block.group(1) == markdown_table(), (
-        "README parameter table is stale: regenerate with `rover-bridge check-params --table`")
+        "docs/parameters.md's table is stale: regenerate it with `rover-bridge check-params --table`")
     for info in iter_params():
         assert f"`{info.path}`" in block.group(1)
+
+
+def test_the_readme_is_short() -> None:
+    lines = README.splitlines()
+    assert len(lines) <= README_MAX_LINES, f"README.md has {len(lines)} lines; move detail into docs/"
+
+
+def test_no_markdown_line_is_wider_than_120_characters_outside_tables() -> None:
+    wide = [f"{path.relative_to(REPO)}:{number}: {len(line)} characters"
+            for path in markdown_files()
+            for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+            if len(line) > MARKDOWN_MAX_WIDTH and not line.lstrip().startswith("|")]
+    assert not wide, wide
+
+
+def test_every_relative_link_in_the_readme_and_docs_exists() -> None:
+    missing = []
+    for path in markdown_files():
+        text = path.read_text(encoding="utf-8")
+        for target in re.findall(r"\]\(([^)\s]+)\)", text):
+            if re.match(r"[a-z]+:", target):
+                continue  # http:, https:, mailto:
+            file, _, fragment = target.partition("#")
+            dest = (path.parent / file).resolve() if file else path
+            if not dest.exists():
+                missing.append(f"{path.relative_to(REPO)}: {target}")
+            elif fragment and dest.suffix == ".md" and fragment not in anchors(dest):
+                missing.append(f"{path.relative_to(REPO)}: {target} (no such heading)")
+    assert not missing, missing
+
+
+def anchors(path: Path) -> set[str]:
+    """GitHub's anchors of a Markdown file's headings: lower case, punctuation dropped, spaces to hyphens."""
+    headings = re.findall(r"^#+ (.+)$", path.read_text(encoding="utf-8"), re.M)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in headings}
 
 
 def quick_start() -> list[str]:
@@ -47,12 +92,34 @@ def test_ci_runs_the_quick_start_commands_as_written() -> None:
     assert 'bash -euo pipefail -c "${QUICK[0]}"' in script and 'bash -euo pipefail -c "${QUICK[1]}"' in script
 
 
-def test_every_subcommand_the_readme_shows_exists() -> None:
+def code_in(text: str) -> list[str]:
+    """What a reader types: the lines of code blocks and the code spans, not the prose."""
+    blocks = re.findall(r"```[a-z]*\n(.*?)```", text, re.S)
+    return [line for block in blocks for line in block.splitlines()] + re.findall(r"`([^`\n]+)`", text)
+
+
+def test_every_command_and_option_the_docs_show_exists() -> None:
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    known = set(sub.choices)  # type: ignore[arg-type]
-    # Commands as the reader types them: in code blocks and code spans, not in prose.
-    code = "\n".join(re.findall(r"```[a-z]*\n(.*?)```", README, re.S) + re.findall(r"`([^`\n]+)`", README))
-    used = set(re.findall(r"(?:^|&& |\s)rover-bridge ([a-z][a-z-]+)", code, re.M))
-    assert {"demo", "run", "check-params", "ik", "replay"} <= used
-    assert used <= known, used - known
+    commands: dict[str, argparse.ArgumentParser] = sub.choices  # type: ignore[assignment]
+    unknown, used = [], set()
+    for path in markdown_files():
+        for line in code_in(path.read_text(encoding="utf-8")):
+            for name, rest in re.findall(r"(?:^|&& |\s|/)rover-bridge ([a-z][a-z-]+)([^#&;|`]*)", line):
+                used.add(name)
+                if name not in commands:
+                    unknown.append(f"{path.name}: rover-bridge {name}")
+                    continue
+                options = commands[name]._option_string_actions
+                unknown += [f"{path.name}: rover-bridge {name} {flag}"
+                            for flag in re.findall(r"(?:^|\s)(--[a-z][a-z-]*)", rest) if flag not in options]
+    assert {"demo", "init", "run", "check-params", "ik", "calibrate", "replay", "fleet"} <= used
+    assert not unknown, unknown
+
+
+def test_the_readme_leads_with_init_and_the_shipped_ardupilot_parameters() -> None:
+    code = "\n".join(code_in(README))
+    assert re.search(r"rover-bridge init (\S+)", code) is not None
+    profile = re.search(r"rover-bridge init (\S+)", code).group(1)  # type: ignore[union-attr]
+    assert f"--params {profile}" in code  # the commands after it use the profile init wrote
+    assert "deploy/ardupilot-rover.parm" in README and (REPO / "deploy" / "ardupilot-rover.parm").exists()

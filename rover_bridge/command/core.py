@@ -13,10 +13,10 @@
  the stop at exit, confirmed                                  .stopping
 ```
 
-Each part's module says its rules; the README repeats them for users. Here: before the vehicle's id is known
-nothing is sent at all (an override cannot be addressed); every exit path the shell can reach calls
-`shutdown` (neutral, release, then the autopilot's proof); a dead bridge is covered by the autopilot's
-override timeout (RC_OVERRIDE_TIME).
+Each part's module says its rules; docs/safety.md and docs/gcs.md repeat them for users. Here: before the
+vehicle's id is known nothing is sent at all (an override cannot be addressed); every exit path the shell can
+reach calls `shutdown` (neutral, release, then the autopilot's proof); a dead bridge is covered by the
+autopilot's override timeout (RC_OVERRIDE_TIME).
 """
 
 from __future__ import annotations

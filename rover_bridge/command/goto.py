@@ -172,7 +172,7 @@ class PositionTargets:
     # ----------------------------------------------------------------- from a ground station
 
     def handle(self, inc: Incoming, now_s: float) -> Reaction:
-        """Take, refuse or answer a position target (module doc; the README's "Going to a point")."""
+        """Take, refuse or answer a position target (module doc; docs/gcs.md, "Going to a point")."""
         msg = inc.msg
         if not self.gcs.for_vehicle(msg):
             return NOTHING

@@ -1,6 +1,6 @@
 """[security]'s command gate (pure): may this incoming frame be acted on or forwarded?
 
-Design (the README repeats it for users):
+Design (docs/security.md repeats it for users):
 
 - Gate (`CommandGate`, in front of both cores): on the GCS side every message type except the
   read-only ones in UNSIGNED_OK is a command: velocity requests (SET_POSITION_TARGET_*,

@@ -15,7 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", nargs="?", metavar="PROFILE",
                         help="profile to check: a TOML file or a packaged profile's name (e.g. default)")
     parser.add_argument("--table", action="store_true",
-                        help="print the parameter reference as a Markdown table (the README's) and exit")
+                        help="print the parameter reference as a Markdown table (docs/parameters.md) and exit")
 
 
 def main(args: argparse.Namespace) -> int:
