@@ -168,6 +168,11 @@ def test_a_silent_gcs_gets_neutral_release_then_nothing_until_the_autopilot_acts
     rig.statustext(12.0, "GCS Failsafe")  # ArduPilot acted (FS_ACTION 0: no mode change)
     assert overrides(rig.run_until(12.2, 12.0)) and rig.core.state is CommandState.IDLE
     assert kinds(rig.run_until(30.0, 12.2)).count("RC_CHANNELS_OVERRIDE") > 300  # and not again while silent
+    rig.gcs_heartbeat(30.0)
+    rig.run_until(36.0, 30.0)
+    assert rig.core.state is CommandState.GCS_SILENT
+    rig.statustext(36.0, "Radio Failsafe")  # the GCS failsafe as ArduPilot often words it (gcs_failsafe)
+    assert rig.core.state is CommandState.IDLE
 
 
 def test_a_mode_change_ends_the_silence_and_the_gcs_coming_back_too() -> None:

@@ -15,7 +15,8 @@ failsafe from ever firing. So the bridge watches the GCS itself, as ArduPilot wo
   FS_GCS_ENABLE 2 AUTO continues, so the bridge keeps driving there), the bridge sends neutral and release once
   and then nothing from that id;
 - that silence ends when the GCS is seen again, when the autopilot changes mode (the failsafe's action, or a
-  pilot), or when ArduPilot says "GCS Failsafe" (with FS_ACTION 0 there is no mode change): the mode table rules
+  pilot), or when ArduPilot says "GCS Failsafe" or "Radio Failsafe" (its GCS failsafe's words, see
+  AUTOPILOT_FAILSAFE_TEXTS; with FS_ACTION 0 there is no mode change): the mode table rules
   again, and the next silence needs the GCS seen once more (else the bridge would stop RTL, which ArduPilot
   goes on with while the GCS is still silent).
 
@@ -43,7 +44,10 @@ log = logging.getLogger("rover_bridge.command")
 ROVER_HOLD, ROVER_AUTO, ROVER_RTL = 4, 10, 11
 FS_OPTION_ACTIVE_IN_HOLD = 1
 CONTINUE_MISSION = 2  # FS_GCS_ENABLE 2: "Enabled Continue with Mission in Auto"
-AUTOPILOT_FAILSAFE_TEXT = "GCS Failsafe"  # Rover/failsafe.cpp, "%s Failsafe" with "GCS"
+# Rover/failsafe.cpp says "%s Failsafe" with the name of whichever check ran the trigger: the GCS bit is often
+# set by gcs_failsafe_check (10 Hz) and acted on in radio_failsafe_check (50 Hz), which says "Radio" (measured on
+# the real SITL: the GCS failsafe said "Radio Failsafe"). Either means the autopilot acted and cleared overrides.
+AUTOPILOT_FAILSAFE_TEXTS = frozenset({"GCS Failsafe", "Radio Failsafe"})
 PARAM_NAMES = ("FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_OPTIONS")
 PARAM_RETRY_S = 2.0
 PARAM_ATTEMPTS = 3  # an autopilot with no such parameters (PX4) answers nothing: stop asking
@@ -163,7 +167,7 @@ class GcsSilence:
         return False
 
     def autopilot_acted(self) -> bool:
-        """ArduPilot said "GCS Failsafe": True if this ends a silence."""
+        """ArduPilot said it failed safe: True if this ends a silence."""
         ended = self.phase is Phase.SILENT
         if self.phase is not Phase.UNSEEN:
             self.phase, self.due_s = Phase.SPENT, math.inf
@@ -207,8 +211,10 @@ class GcsFailsafeWatch:
         return self.reporter.statustext(mavlink.MAV_SEVERITY_INFO, text, now_s, key="gcs_failsafe.params")
 
     def on_statustext(self, msg: MAVLinkMessage) -> bool:
-        """True if ArduPilot's "GCS Failsafe" ends a silence."""
-        if not self.active or not self._from_autopilot(msg) or str(msg.text).rstrip("\x00") != AUTOPILOT_FAILSAFE_TEXT:
+        """True if ArduPilot's "GCS Failsafe" (or "Radio Failsafe") ends a silence."""
+        if not self.active or not self._from_autopilot(msg):
+            return False
+        if str(msg.text).rstrip("\x00") not in AUTOPILOT_FAILSAFE_TEXTS:
             return False
         self._count("gcs_failsafe.autopilot")
         return self.silence.autopilot_acted()
