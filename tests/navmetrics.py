@@ -35,14 +35,17 @@ class RouteFigures:
     closest_m: tuple[float, ...]
     xtrack_max_m: float
     xtrack_rms_m: float
+    xtrack_max_at: Point = (math.nan, math.nan)  # where on the track the largest error was (north, east)
 
     def row(self) -> str:
         return (f"{self.time_s:.1f} s | " + " / ".join(f"{c:.2f}" for c in self.closest_m)
-                + f" m | {self.xtrack_max_m:.2f} / {self.xtrack_rms_m:.2f} m")
+                + f" m | {self.xtrack_max_m:.2f} / {self.xtrack_rms_m:.2f} m"
+                + f" (largest at {self.xtrack_max_at[0]:.1f}, {self.xtrack_max_at[1]:.1f})")
 
 
 def route_figures(track: list[Point], start: Point, waypoints: list[Point], time_s: float) -> RouteFigures:
     legs = [start, *waypoints]
     closest = tuple(min(math.hypot(x - n, y - e) for x, y in track) for n, e in waypoints)
     xt = [distance_to_path_m(p, legs) for p in track]
-    return RouteFigures(time_s, closest, max(xt), math.sqrt(sum(d * d for d in xt) / len(xt)))
+    worst = max(range(len(xt)), key=xt.__getitem__)
+    return RouteFigures(time_s, closest, xt[worst], math.sqrt(sum(d * d for d in xt) / len(xt)), track[worst])
