@@ -163,7 +163,9 @@ def test_a_silent_gcs_gets_neutral_release_then_nothing_until_the_autopilot_acts
     assert rig.core.state is CommandState.GCS_SILENT
     assert overrides(at)[-2:] == [(1500, 1500), (0, 0)]  # neutral, then both channels released
     assert "RB: GCS silent, overrides released for failsafe" in texts(at)
-    quiet = rig.run_until(12.0, 5.55)
+    assert rig.local(6.0, vx=1.0).out == ()  # a request is no heartbeat (nor for ArduPilot): refused, nothing sent
+    assert rig.core.counters["dropped.gcs_silent"] == 1
+    quiet = rig.run_until(12.0, 6.0)
     assert kinds(quiet) == []  # not one message from the override's id: ArduPilot can count to its failsafe
     rig.statustext(12.0, "GCS Failsafe")  # ArduPilot acted (FS_ACTION 0: no mode change)
     assert overrides(rig.run_until(12.2, 12.0)) and rig.core.state is CommandState.IDLE
