@@ -104,3 +104,13 @@ def test_no_two_modules_differ_only_by_a_suffix_and_none_is_named_after_the_prod
     assert "bridge" not in stems and "rover_bridge" not in stems
     clashes = [(a, b) for a in stems for b in stems if a < b and (b.startswith(a) and len(b) - len(a) <= 3)]
     assert clashes == []
+
+
+def test_no_class_in_the_command_flow_is_over_300_lines() -> None:
+    sizes = {}
+    for path in sorted((Path(__file__).resolve().parents[1] / "rover_bridge" / "command").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                sizes[f"{path.name}:{node.name}"] = (node.end_lineno or node.lineno) - node.lineno + 1
+    assert "core.py:CommandCore" in sizes and "gcs_failsafe.py:GcsSilence" in sizes
+    assert {name: n for name, n in sizes.items() if n > 300} == {}

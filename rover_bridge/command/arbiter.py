@@ -11,7 +11,8 @@
   (BRAKING); once at zero it is dropped (IDLE). A running position target has no timeout; when it ends it
   brakes the same way (a zero request that has already timed out).
 - A safety gate (rover_bridge.command.safety) drops the request: LINK_LOST and DISARMED also drop the
-  limiter's motion (neutral at once), HOLD keeps it and brakes to zero, then neutral; FAULT is neutral at once.
+  limiter's motion (neutral at once), HOLD keeps it and brakes to zero, then neutral; FAULT is neutral at once;
+  GCS_SILENT is neutral and release once, then nothing at all (ArduPilot must see no override).
 - A driver the mode table no longer lists for the autopilot's mode (rover_bridge.command.modes) brakes as if
   its request had timed out, until the driver the new mode lists takes the wheels.
 """
@@ -37,7 +38,7 @@ log = logging.getLogger("rover_bridge.command")
 
 _DRIVING = (CommandState.ACTIVE, CommandState.BRAKING)
 _RAMPING = (CommandState.ACTIVE, CommandState.BRAKING, CommandState.HOLD)  # the limiter runs, no reset
-_DROPPING = (CommandState.LINK_LOST, CommandState.DISARMED)  # gates that drop the request and the motion
+_DROPPING = (CommandState.LINK_LOST, CommandState.DISARMED, CommandState.GCS_SILENT)  # drop request and motion
 _ZERO = Twist2D()
 
 
@@ -133,7 +134,10 @@ class Arbiter:
         self._count(f"state.{new.value}")
         log.info("command state %s -> %s", old.value, new.value)
         severity, said = text if text is not None else STATE_TEXT[new]
-        return self.reporter.statustext(severity, said, now_s, key=f"state.{new.value}")
+        out = self.reporter.statustext(severity, said, now_s, key=f"state.{new.value}")
+        if new is CommandState.GCS_SILENT and self.identity.vehicle_system_id is not None:
+            out = self.stage.release(now_s) + out
+        return out
 
     def release(self) -> None:
         """The request is gone (the limiter keeps its motion)."""
@@ -155,6 +159,9 @@ class Arbiter:
             target, said = self.active.target(now_s)
         stage = self.stage
         stage.step_limiter(target, now_s, answer, ramping=state in _RAMPING)
+        if state is CommandState.GCS_SILENT:
+            self.stage.skip(now_s)  # set_state sent neutral and release; nothing more
+            return []
         direct = self.gates.direct
         if state is CommandState.DIRECT and direct is not None:
             return stage.direct_output(direct, now_s)

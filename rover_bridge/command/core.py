@@ -51,6 +51,7 @@ log = logging.getLogger("rover_bridge.command")
 STOP_UNCONFIRMED = (mavlink.MAV_SEVERITY_CRITICAL, "RB: stop NOT confirmed by the autopilot")
 STOP_NOTHING = (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped (no vehicle known: nothing sent)")
 MODE_REQUESTS = frozenset({"SET_MODE", "COMMAND_LONG", "COMMAND_INT"})
+GCS_SEEN = frozenset({"HEARTBEAT", "MANUAL_CONTROL"})  # what ArduPilot counts as its GCS alive (gcs_failsafe)
 _OVER = (CommandState.STOPPING, CommandState.STOPPED)
 
 
@@ -59,7 +60,8 @@ class CommandCore:
 
     # What handle() reads from the autopilot link (BridgeCore decodes nothing else from it); the demand only
     # once the autopilot has driven in one of its modes (demand_wanted): until then nobody needs it decoded.
-    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC"}) | AUTOPILOT_NAV_ECHOES
+    AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC", "PARAM_VALUE",
+                                 "STATUSTEXT"}) | AUTOPILOT_NAV_ECHOES
     DEMAND_READS = frozenset({"SERVO_OUTPUT_RAW"})
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter,
@@ -147,14 +149,20 @@ class CommandCore:
                 return self._on_command_ack(msg, now_s)
             elif kind == "SERVO_OUTPUT_RAW":
                 return self.autopilot.handle(msg, now_s)
+            elif kind == "PARAM_VALUE":
+                return Reaction(consumed=False, out=tuple(self.gates.gcs_failsafe.on_param_value(msg, now_s)))
+            elif kind == "STATUSTEXT":
+                return self._resumed(now_s) if self.gates.gcs_failsafe.on_statustext(msg) else NOTHING
             elif kind in AUTOPILOT_NAV_ECHOES:
                 if kind == "NAV_CONTROLLER_OUTPUT":
                     self.autopilot.on_nav(msg, now_s)
                 return Reaction(consumed=True) if self.targets.echo_to_hide(msg) else NOTHING
             return NOTHING
-        if kind == "HEARTBEAT":
-            self.targets.nav.on_gcs_heartbeat(msg, now_s)
-            return NOTHING
+        if kind in GCS_SEEN:
+            resumed = self.gates.gcs_failsafe.on_gcs(msg, now_s)
+            if kind == "HEARTBEAT":
+                self.targets.nav.on_gcs_heartbeat(msg, now_s)
+                return self._resumed(now_s) if resumed else NOTHING
         try:
             goto = is_goto(msg, kind)
         except (AttributeError, TypeError, ValueError, OverflowError):
@@ -177,7 +185,7 @@ class CommandCore:
             if self.stopper.timed_out(now_s):
                 return self.wheels.set_state(CommandState.STOPPED, now_s, STOP_UNCONFIRMED)
             return self.stopper.messages(now_s) if self.stopper.resend_due(now_s) else []
-        out = self.targets.mode_change_tick(now_s)
+        out = self.targets.mode_change_tick(now_s) + self.gates.gcs_failsafe.tick(now_s)
         nxt = self.stage.next_output_s
         out += self.wheels.advance(now_s, force_output=nxt is None or now_s >= nxt)
         if self.wheels.active is self.targets and self.state is CommandState.ACTIVE:
@@ -251,10 +259,18 @@ class CommandCore:
     def _on_heartbeat(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
         if not self.identity.is_autopilot_heartbeat(msg):
             return NOTHING
-        self.vehicle.on_heartbeat(msg, now_s)
+        vehicle = self.vehicle
+        if vehicle.last_heartbeat_s is None or vehicle.link_lost(now_s):
+            self.gates.gcs_failsafe.autopilot_back(now_s)  # first seen, or back (rebooted?): read its FS_GCS_*
+        vehicle.on_heartbeat(msg, now_s)
+        self.gates.gcs_failsafe.silence.on_mode(vehicle.custom_mode)
         if not self.targets.in_guided():
             self.targets.nav.cruise_m_s = None  # DO_CHANGE_SPEED lasts while in GUIDED (ArduPilot: reset on entry)
         self.gates.on_heartbeat()
+        return Reaction(consumed=False, out=tuple(self.wheels.advance(now_s, force_output=False)))
+
+    def _resumed(self, now_s: float) -> Reaction:
+        """A GCS silence ended (the GCS spoke, or the autopilot acted): the drivers may have the wheels again."""
         return Reaction(consumed=False, out=tuple(self.wheels.advance(now_s, force_output=False)))
 
     def _on_command_ack(self, msg: MAVLinkMessage, now_s: float) -> Reaction:

@@ -26,6 +26,7 @@ class CommandState(enum.Enum):
     DISARMED = "disarmed"  # require_armed and the autopilot is disarmed: neutral
     REFUSED = "refused"  # the autopilot refused DO_SET_SERVO: neutral until a fresh request
     HOLD = "hold"  # the autopilot is in a stop mode (HOLD): brake to zero, then neutral, until a fresh request
+    GCS_SILENT = "gcs_silent"  # the GCS silent for FS_GCS_TIMEOUT: nothing sent, ArduPilot's failsafe acts
     FAULT = "fault"  # a wiring fault (a wheel turning the wrong way or not at all): neutral
     DIRECT = "direct"  # `rover-bridge calibrate` sets each wheel's PWM itself (no request, no loop)
     STOPPING = "stopping"  # shutdown() sent neutral and release: waiting for the autopilot's proof
@@ -41,6 +42,7 @@ STATE_TEXT = {
     CommandState.REFUSED: (mavlink.MAV_SEVERITY_ERROR, "RB: DO_SET_SERVO refused, neutral"),
     CommandState.HOLD: (mavlink.MAV_SEVERITY_NOTICE, "RB: autopilot in HOLD, braking, then neutral"),
     CommandState.FAULT: (mavlink.MAV_SEVERITY_CRITICAL, "RB: wiring fault: neutral until disarmed"),
+    CommandState.GCS_SILENT: (mavlink.MAV_SEVERITY_WARNING, "RB: GCS silent, overrides released for failsafe"),
     CommandState.DIRECT: (mavlink.MAV_SEVERITY_WARNING, "RB: calibrating: driving wheels directly"),
     CommandState.STOPPING: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopping, neutral sent, confirming"),
     CommandState.STOPPED: (mavlink.MAV_SEVERITY_NOTICE, "RB: stopped, autopilot confirmed release"),

@@ -137,6 +137,9 @@ class GcsRequests:
         if state is CommandState.DIRECT:
             self._count("dropped.direct")
             return Reaction(consumed=True, out=tuple(out))
+        if state is CommandState.GCS_SILENT:  # ArduPilot's GCS failsafe is due: no override (gcs_failsafe)
+            self._count("dropped.gcs_silent")
+            return Reaction(consumed=True, out=tuple(out))
         mode = self.vehicle.driving_mode
         if state is CommandState.HOLD or mode not in self.modes.gcs:
             # The GCS pressed Hold: a request still streaming from a planner must not undo it. Nor may one undo

@@ -123,6 +123,23 @@ class OutputStage:
         self._count(counter)
         return [self.to_autopilot(m) for m in msgs]
 
+    def release(self, now_s: float) -> list[Outgoing]:
+        """Neutral, then the channels handed back to the radio (rc_override): the last output for a while."""
+        vehicle = self.identity.vehicle_system_id
+        assert vehicle is not None
+        target = (vehicle, self.identity.autopilot_component_id)
+        msgs = self.outputs.command(self.outputs.neutral, *target) + self.outputs.release(*target)
+        self.last_wheel_pwm = self.outputs.neutral
+        self.skip(now_s)
+        self._count("outputs.released")
+        return [self.to_autopilot(m) for m in msgs]
+
+    def skip(self, now_s: float) -> None:
+        """No output this period (the grid moves on, so the loop does not wake for it again at once)."""
+        self.rest()
+        self.last_output_s = now_s
+        self.next_output_s = now_s + self.period_s
+
     def rest(self) -> None:
         """Wheels at neutral: the loop, the wiring monitor and the slip hold start afresh."""
         if self.loop is not None:

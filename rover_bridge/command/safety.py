@@ -3,6 +3,8 @@
 In order (the first that applies wins):
 - no autopilot heartbeat yet: WAITING (nothing can be addressed);
 - its heartbeat silent for safety.heartbeat_timeout_s: LINK_LOST, neutral at once, the request dropped;
+- the ground station silent for ArduPilot's FS_GCS_TIMEOUT where its GCS failsafe would act: GCS_SILENT,
+  neutral and release once, then nothing (rover_bridge.command.gcs_failsafe);
 - safety.require_armed and the autopilot disarmed: DISARMED, neutral, the request dropped (ArduPilot's RC
   passthrough drives the motors even when disarmed, so a disarm would otherwise not stop the wheels);
 - a wiring fault (control.fault_*): FAULT, neutral, requests refused until the autopilot is disarmed (the
@@ -20,6 +22,7 @@ import logging
 from collections.abc import Callable
 
 from rover_bridge.command.drivers import CommandState
+from rover_bridge.command.gcs_failsafe import GcsFailsafeWatch
 from rover_bridge.command.modes import ModeTable, mode_name
 from rover_bridge.command.outputs import WheelPwm
 from rover_bridge.command.vehicle import VehicleState
@@ -40,6 +43,7 @@ class SafetyGates:
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter, vehicle: VehicleState,
                  modes: ModeTable, count: Callable[[str], None]) -> None:
+        self.gcs_failsafe = GcsFailsafeWatch(identity, reporter, profile.output.mode == "rc_override", count)
         self.require_armed = profile.safety.require_armed
         self.servo_mode = profile.output.mode == "servo"
         self.identity = identity
@@ -60,6 +64,8 @@ class SafetyGates:
             return CommandState.WAITING
         if now_s >= last + v.heartbeat_timeout_s:  # VehicleState.link_lost, inline: this runs on every output
             return CommandState.LINK_LOST
+        if now_s >= self.gcs_failsafe.silence.due_s and self.gcs_failsafe.silent(now_s, v.custom_mode):
+            return CommandState.GCS_SILENT
         if self.require_armed and not v.armed:
             return CommandState.DISARMED
         if self.wiring_fault is not None:

@@ -1,0 +1,577 @@
+"""Against a real ArduPilot Rover SITL (optional): the autopilot drives through the bridge (issue 29).
+
+Runs only when ROVER_BRIDGE_ARDUROVER names an `ardurover` binary (see tests/test_ardupilot_sitl.py); about 8
+minutes of wall time: `python -m pytest -m ardupilot_sitl -s tests/test_ardupilot_sitl_nav.py` (-s prints the
+figures). Two SITLs run side by side, both rover-skid with rover.parm + rover-skid.parm:
+
+- the anchor: ArduPilot alone, SERVO1/3 = 73/74, a ground station (pymavlink, 255/190) on its SERIAL0;
+- the bridge setup: deploy/ardupilot-rover.parm loaded as shipped, `rover-bridge run` with
+  params/ardupilot-sitl-skid.toml on its SERIAL0 (TCP), the ground station on the bridge's UDP port.
+
+Each keeps a monitor (250/191) on SERIAL1 that reads the simulator's truth (SIMSTATE, 20 Hz), the outputs
+(SERVO_OUTPUT_RAW, 40 Hz), the mode and the texts. Scenarios run in file order on the same two SITLs; each
+starts by arming (ArduPilot sets home and clears SmartRTL's path there) and ends disarmed.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from lockstep import free_udp_port
+from navmetrics import Point, distance_to_path_m, route_figures
+
+from rover_bridge.mavlink.dialect import mavlink, mavutil
+
+BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
+pytestmark = [
+    pytest.mark.ardupilot_sitl,
+    pytest.mark.skipif(not BINARY, reason="ROVER_BRIDGE_ARDUROVER does not name an ardurover binary"),
+]
+
+REPO = Path(__file__).resolve().parents[1]
+PROFILE = REPO / "params" / "ardupilot-sitl-skid.toml"
+PARM = REPO / "deploy" / "ardupilot-rover.parm"
+ANCHOR_INSTANCE, BRIDGE_INSTANCE = 5, 6  # ports 5760 + 10 * I (SERIAL0), + 2 (SERIAL1)
+MANUAL, HOLD, AUTO, RTL, SMART_RTL = 0, 4, 10, 11, 12
+WAYPOINTS: list[Point] = [(10.0, 0.0), (10.0, 10.0), (0.0, 10.0)]
+TRIM = 1500
+EARTH_RADIUS_M = 6378137.0
+BODY_VELOCITY_MASK = 0b0000_0101_1100_0111
+COMMON = "ARMING_CHECK 0\nSERIAL1_PROTOCOL 2\n"
+ANCHOR_PARAMS = COMMON  # rover-skid.parm's SERVO1/3 = 73/74
+# The bridge profile's wheel encoders (SITL's, with the profile's effective track): see test_ardupilot_sitl.py.
+BRIDGE_PARAMS = COMMON + "WENC_TYPE 10\nWENC2_TYPE 10\nWENC_POS_Y 0.8185\nWENC2_POS_Y -0.8185\n"
+FIGURES: list[str] = []  # printed at the end of the module (pytest -s)
+
+
+def _default_params() -> Path:
+    given = os.environ.get("ROVER_BRIDGE_ARDUPILOT_PARAMS")
+    return Path(given) if given else Path(BINARY).resolve().parents[3] / "Tools" / "autotest" / "default_params"
+
+
+class Link:
+    """A pymavlink connection read by a thread: every message kept (bounded), a heartbeat sent at 1 Hz while
+    `beating`, and `each` (if set) called every 0.1 s (a GCS's velocity requests or sticks)."""
+
+    def __init__(self, url: str, sysid: int, compid: int, beating: bool = True) -> None:
+        self.conn: Any = mavutil.mavlink_connection(url, source_system=sysid, source_component=compid,
+                                                    dialect="ardupilotmega")
+        self.beating = beating
+        self.each: Callable[[], None] | None = None
+        self.messages: collections.deque[tuple[float, Any]] = collections.deque(maxlen=200_000)
+        self.lock = threading.Lock()
+        self.alive = True
+        self._threads = [threading.Thread(target=self._rx, daemon=True), threading.Thread(target=self._tx, daemon=True)]
+        for th in self._threads:
+            th.start()
+
+    def _rx(self) -> None:
+        while self.alive:
+            try:
+                m = self.conn.recv_match(blocking=True, timeout=0.2)
+            except OSError:
+                time.sleep(0.05)
+                continue
+            if m is not None and m.get_type() != "BAD_DATA":
+                self.messages.append((time.monotonic(), m))
+
+    def _tx(self) -> None:
+        n = 0
+        while self.alive:
+            with self.lock:
+                if self.beating and n % 10 == 0:
+                    self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                if self.each is not None:
+                    self.each()
+            n += 1
+            time.sleep(0.1)
+
+    def of(self, kind: str, since: float = 0.0) -> list[Any]:
+        return [m for t, m in list(self.messages) if t >= since and m.get_type() == kind]
+
+    def texts(self, since: float = 0.0) -> list[str]:
+        return [m.text for m in self.of("STATUSTEXT", since)]
+
+    def wait(self, done: Callable[[], bool], timeout_s: float) -> bool:
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if done():
+                return True
+            time.sleep(0.02)
+        return done()
+
+    def command(self, command: int, *params: float) -> int | None:
+        p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
+        since = time.monotonic()
+        with self.lock:
+            self.conn.mav.command_long_send(1, 1, command, 0, *p)
+        ok = self.wait(lambda: any(m.command == command for m in self.of("COMMAND_ACK", since)), 3.0)
+        return [m.result for m in self.of("COMMAND_ACK", since) if m.command == command][-1] if ok else None
+
+    def set_param(self, name: str, value: float) -> None:
+        since = time.monotonic()
+        with self.lock:
+            self.conn.mav.param_set_send(1, 1, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32)
+        assert self.wait(lambda: any(m.param_id == name for m in self.of("PARAM_VALUE", since)), 5.0), name
+
+    def get_param(self, name: str) -> float:
+        since = time.monotonic()
+        with self.lock:
+            self.conn.mav.param_request_read_send(1, 1, name.encode(), -1)
+        assert self.wait(lambda: any(m.param_id == name for m in self.of("PARAM_VALUE", since)), 5.0), name
+        return float([m for m in self.of("PARAM_VALUE", since) if m.param_id == name][-1].param_value)
+
+    def close(self) -> None:
+        self.alive = False
+        for th in self._threads:
+            th.join(1.0)
+        self.conn.close()
+
+
+class Sitl:
+    """One ardurover and its monitor on SERIAL1: truth (north, east from where it booted), mode, outputs."""
+
+    def __init__(self, instance: int, extra: str, workdir: Path, parm_files: tuple[Path, ...] = ()) -> None:
+        self.instance = instance
+        self.serial0 = 5760 + 10 * instance
+        workdir.mkdir(parents=True, exist_ok=True)
+        (workdir / "extra.parm").write_text(extra)
+        params = _default_params()
+        defaults = ",".join(str(p) for p in (params / "rover.parm", params / "rover-skid.parm", *parm_files,
+                                             workdir / "extra.parm"))
+        self.log = open(workdir / "ardurover.log", "wb")  # noqa: SIM115
+        self.proc = subprocess.Popen([BINARY, "--model", "rover-skid", "--defaults", defaults, "-I", str(instance),
+                                      "--serial0", "tcp:0", "-w"], cwd=workdir, stdout=self.log,
+                                     stderr=subprocess.STDOUT)
+        self.monitor = self._connect(self.serial0 + 2, 250, 191)
+        self.monitor.beating = False  # not the GCS: its heartbeat is no GCS for ArduPilot's failsafe anyway
+        self.origin_deg: tuple[float, float] | None = None
+        for _ in range(3):
+            self.monitor.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_SIMSTATE, 50_000)
+            self.monitor.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, 25_000)
+            if self.monitor.wait(lambda: len(self.monitor.of("SIMSTATE")) > 5, 2.0):
+                break
+        last = self.monitor.of("SIMSTATE")[-1]
+        self.origin_deg = (last.lat * 1e-7, last.lng * 1e-7)
+
+    @staticmethod
+    def _connect(port: int, sysid: int, compid: int) -> Link:
+        end = time.monotonic() + 90.0
+        while True:
+            try:
+                return Link(f"tcp:127.0.0.1:{port}", sysid, compid)
+            except OSError:
+                if time.monotonic() > end:
+                    raise
+                time.sleep(0.5)
+
+    def gcs_on_serial0(self) -> Link:
+        return self._connect(self.serial0, 255, 190)
+
+    def truth(self) -> Point:
+        m = self.monitor.of("SIMSTATE", time.monotonic() - 1.0)[-1]
+        assert self.origin_deg is not None
+        lat0, lon0 = self.origin_deg
+        return (math.radians(m.lat * 1e-7 - lat0) * EARTH_RADIUS_M,
+                math.radians(m.lng * 1e-7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
+
+    def track(self, since: float, until: float = math.inf) -> list[Point]:
+        assert self.origin_deg is not None
+        lat0, lon0 = self.origin_deg
+        return [(math.radians(m.lat * 1e-7 - lat0) * EARTH_RADIUS_M,
+                 math.radians(m.lng * 1e-7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
+                for t, m in list(self.monitor.messages) if since <= t <= until and m.get_type() == "SIMSTATE"]
+
+    def mode(self) -> int | None:
+        beats = [m for m in self.monitor.of("HEARTBEAT", time.monotonic() - 2.0) if m.get_srcSystem() == 1
+                 and m.get_srcComponent() == 1]
+        return int(beats[-1].custom_mode) if beats else None
+
+    def _speed_from_track(self) -> float:
+        now = time.monotonic()
+        pts = [(t, m) for t, m in list(self.monitor.messages) if t >= now - 0.5 and m.get_type() == "SIMSTATE"]
+        if len(pts) < 2:
+            return math.inf
+        (t0, a), (t1, b) = pts[0], pts[-1]
+        d = math.hypot((b.lat - a.lat) * 1e-7 * 111_320.0,
+                       (b.lng - a.lng) * 1e-7 * 111_320.0 * math.cos(math.radians(a.lat * 1e-7)))
+        return d / max(t1 - t0, 1e-3)
+
+    def stopped(self) -> bool:
+        return self._speed_from_track() < 0.05
+
+    def home_here(self) -> None:
+        """Truth coordinates from here on (ArduPilot sets home at arming: call it right after arming)."""
+        m = self.monitor.of("SIMSTATE")[-1]
+        self.origin_deg = (m.lat * 1e-7, m.lng * 1e-7)
+
+    def lat_lon_e7(self, north_m: float, east_m: float) -> tuple[int, int]:
+        assert self.origin_deg is not None
+        lat0, lon0 = self.origin_deg
+        return (round((lat0 + math.degrees(north_m / EARTH_RADIUS_M)) * 1e7),
+                round((lon0 + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))) * 1e7))
+
+    def close(self) -> None:
+        self.monitor.close()
+        self.proc.terminate()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.log.close()
+
+
+class Bridge:
+    """`rover-bridge run` on the SITL's SERIAL0, a ground station on its UDP port."""
+
+    def __init__(self, sitl: Sitl, workdir: Path, profile: Path = PROFILE) -> None:
+        port = free_udp_port()
+        self.log_path = workdir / "bridge.log"
+        with open(self.log_path, "ab") as log:
+            self.proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "-v", "run", "--params", str(profile),
+                                          "--autopilot", f"tcp:127.0.0.1:{sitl.serial0}",
+                                          "--gcs", f"udpin:127.0.0.1:{port}"], cwd=REPO, stdout=log,
+                                         stderr=subprocess.STDOUT)
+        end = time.monotonic() + 30.0
+        while b"rover-bridge running" not in self.log_path.read_bytes():
+            assert self.proc.poll() is None and time.monotonic() < end, self.log_path.read_text()[-2000:]
+            time.sleep(0.05)
+        self.gcs = Link(f"udpout:127.0.0.1:{port}", 255, 190)
+
+    def stop(self) -> float:
+        """SIGTERM; the time it was sent."""
+        t0 = time.monotonic()
+        self.proc.send_signal(signal.SIGTERM)
+        assert self.proc.wait(10.0) == 0
+        return t0
+
+    def close(self) -> None:
+        self.gcs.close()
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+class Side:
+    """One SITL and how its ground station reaches it (directly: the anchor; through the bridge)."""
+
+    def __init__(self, name: str, sitl: Sitl, gcs: Link, bridge: Bridge | None) -> None:
+        self.name, self.sitl, self.gcs, self.bridge = name, sitl, gcs, bridge
+
+    def set_mode(self, mode: int) -> None:
+        for _ in range(30):
+            self.gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, mode)
+            if self.sitl.monitor.wait(lambda: self.sitl.mode() == mode, 1.0):
+                return
+        raise AssertionError(f"{self.name}: mode {mode} refused ({self.sitl.monitor.texts()[-5:]})")
+
+    def arm(self) -> None:
+        self.set_mode(MANUAL)
+        time.sleep(2.5)  # disarmed, ArduPilot moves home to here once a second (Rover::update_home)
+        assert self.gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, 21196) == mavlink.MAV_RESULT_ACCEPTED
+        time.sleep(0.5)
+        self.sitl.home_here()
+
+    def disarm(self) -> None:
+        self.set_mode(MANUAL)
+        self.drive(0.0, 0.0)
+        self.gcs.wait(self.sitl.stopped, 10.0)
+        self.gcs.each = None
+        self.release()
+        assert self.gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == mavlink.MAV_RESULT_ACCEPTED
+
+    def drive(self, v_m_s: float, yaw_rate_cw_rad_s: float) -> None:
+        """In MANUAL: the anchor by its sticks (RC1 steering, RC3 throttle overrides), the bridge by velocity
+        requests (SET_POSITION_TARGET_LOCAL_NED, body frame), 10 Hz either way."""
+        mav = self.gcs.conn.mav
+        if self.bridge is None:
+            thr, steer = round(TRIM + 500 * v_m_s / 4.0), round(TRIM + 500 * yaw_rate_cw_rad_s / 2.44)
+            self.gcs.each = lambda: mav.rc_channels_override_send(1, 1, steer, 65535, thr, 65535, 65535, 65535,
+                                                                  65535, 65535)
+        else:
+            self.gcs.each = lambda: mav.set_position_target_local_ned_send(
+                0, 1, 1, mavlink.MAV_FRAME_BODY_NED, BODY_VELOCITY_MASK, 0, 0, 0, v_m_s, 0, 0, 0, 0, 0, 0,
+                yaw_rate_cw_rad_s)
+
+    def release(self) -> None:
+        self.gcs.each = None
+        if self.bridge is None:
+            with self.gcs.lock:
+                self.gcs.conn.mav.rc_channels_override_send(1, 1, 0, 0, 0, 0, 0, 0, 0, 0)
+
+    def drive_until(self, until: Callable[[], bool], v_m_s: float, yaw_rate_cw_rad_s: float = 0.0) -> None:
+        self.drive(v_m_s, yaw_rate_cw_rad_s)
+        assert self.gcs.wait(until, 30.0), f"{self.name}: never got there"
+        self.drive(0.0, 0.0)
+        assert self.gcs.wait(self.sitl.stopped, 10.0)
+
+    def from_home_m(self) -> float:
+        return math.hypot(*self.sitl.truth())
+
+    def upload(self, points: list[Point]) -> None:
+        items = [(0.0, 0.0), *points]
+        since = time.monotonic()
+        with self.gcs.lock:
+            self.gcs.conn.mav.mission_count_send(1, 1, len(items), mavlink.MAV_MISSION_TYPE_MISSION)
+        answered: set[int] = set()
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end:
+            if self.gcs.of("MISSION_ACK", since):
+                assert self.gcs.of("MISSION_ACK", since)[-1].type == mavlink.MAV_MISSION_ACCEPTED
+                return
+            for m in self.gcs.of("MISSION_REQUEST", since) + self.gcs.of("MISSION_REQUEST_INT", since):
+                if m.seq not in answered:
+                    answered.add(m.seq)
+                    lat, lon = self.sitl.lat_lon_e7(*items[m.seq])
+                    with self.gcs.lock:
+                        self.gcs.conn.mav.mission_item_int_send(1, 1, m.seq, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                                                mavlink.MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0, 0, lat,
+                                                                lon, 0, mavlink.MAV_MISSION_TYPE_MISSION)
+            time.sleep(0.02)
+        raise AssertionError(f"{self.name}: no MISSION_ACK")
+
+    def settle_home(self, since: float) -> float:
+        """Distance from home once "Reached destination" is said and the rover has stopped."""
+        assert self.sitl.monitor.wait(lambda: "Reached destination" in self.sitl.monitor.texts(since), 60.0), \
+            f"{self.name}: {self.sitl.monitor.texts(since)}"
+        assert self.sitl.monitor.wait(self.sitl.stopped, 15.0)
+        time.sleep(1.0)
+        assert self.sitl.stopped()
+        return self.from_home_m()
+
+
+@pytest.fixture(scope="module")
+def sides(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Side, Side]]:
+    work = tmp_path_factory.mktemp("sitl_nav")
+    anchor_sitl = Sitl(ANCHOR_INSTANCE, ANCHOR_PARAMS, work / "anchor")
+    bridge_sitl = Sitl(BRIDGE_INSTANCE, BRIDGE_PARAMS, work / "bridge", (PARM,))
+    anchor_gcs = anchor_sitl.gcs_on_serial0()
+    bridge = Bridge(bridge_sitl, work)
+    anchor, through = Side("anchor", anchor_sitl, anchor_gcs, None), Side("bridge", bridge_sitl, bridge.gcs, bridge)
+    try:
+        # The shipped file was loaded as it is (comments and all).
+        assert bridge_sitl.monitor.get_param("SERVO5_FUNCTION") == 73
+        assert bridge_sitl.monitor.get_param("SERVO6_MAX") == 2000
+        assert bridge_sitl.monitor.get_param("RC_OVERRIDE_TIME") == 1
+        for side in (anchor, through):  # GPS and EKF: AUTO, RTL need a position (about 25-45 s after boot)
+            assert side.sitl.monitor.wait(lambda s=side: any("is using GPS" in t for t in s.sitl.monitor.texts()),
+                                          120.0), side.sitl.monitor.texts()
+        time.sleep(5.0)
+        yield anchor, through
+    finally:
+        print("\n" + "\n".join(FIGURES))
+        bridge.close()
+        anchor_gcs.close()
+        bridge_sitl.close()
+        anchor_sitl.close()
+
+
+def fly_mission(side: Side) -> tuple[Any, list[int]]:
+    side.arm()
+    side.upload(WAYPOINTS)
+    since = time.monotonic()
+    side.set_mode(AUTO)
+    start = time.monotonic()
+    at = side.sitl.truth()
+    reached = lambda: [m.seq for m in side.gcs.of("MISSION_ITEM_REACHED", since)]  # noqa: E731
+    assert side.gcs.wait(lambda: len(reached()) >= len(WAYPOINTS), 120.0), f"{side.name}: {reached()}"
+    done = time.monotonic()
+    figures = route_figures(side.sitl.track(start, done), at, WAYPOINTS, done - start)
+    side.disarm()
+    return figures, reached()
+
+
+def test_a_mission_through_the_bridge_against_ardupilot_alone(sides: tuple[Side, Side]) -> None:
+    anchor, through = sides
+    alone, alone_reached = fly_mission(anchor)
+    bridged, bridged_reached = fly_mission(through)
+    FIGURES.append(f"mission (time | closest WP1/2/3 | xtrack max / rms): alone {alone.row()} ; bridge {bridged.row()}")
+    assert alone_reached == [1, 2, 3] and bridged_reached == [1, 2, 3]
+    assert max(bridged.closest_m) <= 0.5
+    assert bridged.time_s <= 1.1 * alone.time_s
+    assert bridged.xtrack_max_m <= alone.xtrack_max_m + 0.3
+
+
+def rtl(side: Side) -> float:
+    side.arm()
+    side.drive_until(lambda: side.from_home_m() >= 11.0, 1.5)
+    side.release()
+    since = time.monotonic()
+    side.set_mode(RTL)
+    final = side.settle_home(since)
+    side.disarm()
+    return final
+
+
+def test_rtl_from_eleven_metres(sides: tuple[Side, Side]) -> None:
+    anchor, through = sides
+    alone, bridged = rtl(anchor), rtl(through)
+    FIGURES.append(f"RTL from 11 m, final distance from home: alone {alone:.2f} m ; bridge {bridged:.2f} m")
+    assert bridged <= 1.0
+
+
+def smart_rtl(side: Side) -> tuple[float, float]:
+    side.arm()
+    side.drive_until(lambda: side.from_home_m() >= 6.0, 1.5)
+    corner = side.sitl.truth()
+    t_turn = time.monotonic()
+    side.drive_until(lambda: _turned_deg(side, t_turn) >= 85.0, 0.0, 0.8)
+    side.drive_until(lambda: math.dist(side.sitl.truth(), corner) >= 6.0, 1.5)
+    out = side.sitl.track(0.0)
+    side.release()
+    since = time.monotonic()
+    side.set_mode(SMART_RTL)
+    final = side.settle_home(since)
+    off_path = max(distance_to_path_m(p, out) for p in side.sitl.track(since))
+    side.disarm()
+    return final, off_path
+
+
+def _turned_deg(side: Side, since: float) -> float:
+    att = side.sitl.monitor.of("ATTITUDE", since)
+    if len(att) < 2:
+        return 0.0
+    return abs(math.degrees((att[-1].yaw - att[0].yaw + math.pi) % (2 * math.pi) - math.pi))
+
+
+def test_smart_rtl_along_the_way_it_came(sides: tuple[Side, Side]) -> None:
+    anchor, through = sides
+    alone, bridged = smart_rtl(anchor), smart_rtl(through)
+    FIGURES.append(f"SMART_RTL final / largest distance from the way out: alone {alone[0]:.2f} / {alone[1]:.2f} m ;"
+                   f" bridge {bridged[0]:.2f} / {bridged[1]:.2f} m")
+    assert bridged[0] <= 1.0 and bridged[1] <= 1.5
+
+
+@pytest.mark.parametrize(("action", "mode"), [(1, RTL), (2, HOLD)])
+def test_a_fence_breach_in_manual_through_the_bridge(sides: tuple[Side, Side], action: int, mode: int) -> None:
+    _anchor, side = sides
+    # AVOID_ENABLE 0: with its default (3: stop at the fence) ArduPilot's RTL after a circle-fence breach stops
+    # about FENCE_MARGIN inside the fence and never gets home, ArduPilot alone as well (measured: 6.6 m from home
+    # for 30 s; with AVOID_ENABLE 0 home at 0.37 m).
+    for name, value in (("AVOID_ENABLE", 0), ("FENCE_TYPE", 2), ("FENCE_RADIUS", 8), ("FENCE_ACTION", action),
+                        ("FENCE_ENABLE", 1)):
+        side.sitl.monitor.set_param(name, value)
+    try:
+        side.arm()
+        since = time.monotonic()
+        side.drive(1.5, 0.0)  # and keeps asking to drive on
+        assert side.sitl.monitor.wait(lambda: side.sitl.mode() == mode, 30.0)
+        at_m = side.from_home_m()
+        if mode == HOLD:
+            time.sleep(3.0)
+            assert side.sitl.stopped()
+            final = side.from_home_m()
+            assert final <= 8.0 + 1.5
+        else:
+            final = side.settle_home(since)
+            assert final <= 1.0
+        FIGURES.append(f"fence 8 m, FENCE_ACTION {action}: mode changed at {at_m:.2f} m, ended {final:.2f} m "
+                       "from home (bridge, the GCS still asking to drive on)")
+    finally:
+        side.gcs.each = None
+        side.sitl.monitor.set_param("FENCE_ENABLE", 0)
+        side.disarm()
+
+
+def failsafe_said(texts: list[str]) -> bool:
+    """ArduPilot's GCS failsafe says "GCS Failsafe" or, acted on in the radio check, "Radio Failsafe"."""
+    return any(t in ("GCS Failsafe", "Radio Failsafe") for t in texts)
+
+
+def test_ardupilots_gcs_failsafe_counts_overrides_as_the_gcs(sides: tuple[Side, Side]) -> None:
+    """The hole, on ArduPilot alone: the GCS's heartbeats stop, its overrides (MAV_GCS_SYSID) go on: no failsafe;
+    the overrides stop too: the failsafe fires FS_GCS_TIMEOUT + FS_TIMEOUT later."""
+    anchor, _through = sides
+    mon = anchor.sitl.monitor
+    for name, value in (("FS_GCS_ENABLE", 1), ("FS_ACTION", 2)):
+        mon.set_param(name, value)
+    try:
+        anchor.arm()
+        anchor.drive(0.0, 0.0)  # neutral sticks, as the bridge's idle overrides
+        anchor.gcs.beating = False
+        since = time.monotonic()
+        time.sleep(15.0)
+        masked = not failsafe_said(mon.texts(since))
+        anchor.release()
+        stopped_at = time.monotonic()
+        assert mon.wait(lambda: failsafe_said(mon.texts(since)), 15.0)
+        fired_s = next(t for t, m in list(mon.messages) if t > since and m.get_type() == "STATUSTEXT"
+                   and failsafe_said([m.text])) - stopped_at
+        FIGURES.append(f"ArduPilot alone, heartbeats stopped, overrides from 255 on for 15 s: failsafe "
+                       f"{'never fired' if masked else 'FIRED'}; overrides stopped: it fired {fired_s:.1f} s later")
+        assert masked and fired_s <= 5.0 + 1.5 + 0.5
+    finally:
+        anchor.gcs.beating = True
+        mon.set_param("FS_GCS_ENABLE", 0)
+        time.sleep(1.0)
+        anchor.disarm()
+
+
+@pytest.mark.parametrize(("start", "fs_action", "expect"), [(MANUAL, 2, HOLD), (AUTO, 1, RTL)])
+def test_a_silent_gcs_lets_ardupilots_failsafe_act_through_the_bridge(sides: tuple[Side, Side], start: int,
+                                                                      fs_action: int, expect: int) -> None:
+    _anchor, side = sides
+    mon = side.sitl.monitor
+    for name, value in (("FS_GCS_ENABLE", 1), ("FS_ACTION", fs_action)):
+        mon.set_param(name, value)
+    try:
+        side.arm()
+        if start == AUTO:
+            side.upload(WAYPOINTS)
+        side.set_mode(start)
+        time.sleep(2.0)
+        side.gcs.beating = False
+        quiet = time.monotonic()
+        last_beat = quiet - 1.0  # its last heartbeat went out within the second before
+        assert mon.wait(lambda: side.sitl.mode() == expect, 30.0), mon.texts(quiet)
+        fired = [t for t, m in list(mon.messages) if t > quiet and m.get_type() == "STATUSTEXT"
+                 and failsafe_said([m.text])]
+        assert fired
+        final = side.settle_home(quiet) if expect == RTL else math.nan
+        FIGURES.append(f"bridge, GCS silent in mode {start} (FS_GCS_ENABLE 1, FS_ACTION {fs_action}): 'GCS Failsafe' "
+                       f"{fired[0] - quiet:.1f} s after the GCS went quiet (last heartbeat <= 1 s before), mode "
+                       f"{side.sitl.mode()}" + (f", home at {final:.2f} m" if expect == RTL else ""))
+        assert fired[0] - last_beat <= 2 * 5.0 + 1.5 + 1.5
+        if expect == RTL:
+            assert final <= 1.0
+    finally:
+        side.gcs.beating = True
+        mon.set_param("FS_GCS_ENABLE", 0)
+        time.sleep(1.5)
+        side.disarm()
+
+
+def test_sigterm_in_auto_trims_the_outputs(sides: tuple[Side, Side]) -> None:
+    _anchor, side = sides
+    assert side.bridge is not None
+    side.arm()
+    side.upload(WAYPOINTS)
+    side.set_mode(AUTO)
+    mon = side.sitl.monitor
+    assert mon.wait(lambda: side.sitl._speed_from_track() > 1.0, 20.0)
+    t0 = side.bridge.stop()
+    at_trim = lambda: [t for t, m in list(mon.messages) if t > t0 and m.get_type() == "SERVO_OUTPUT_RAW"  # noqa: E731
+                       and m.servo1_raw == TRIM and m.servo3_raw == TRIM]
+    assert mon.wait(lambda: bool(at_trim()), 5.0)
+    trim_s = at_trim()[0] - t0
+    log = side.bridge.log_path.read_text()
+    FIGURES.append(f"SIGTERM in AUTO at speed: outputs 1/3 at trim {1000 * trim_s:.0f} ms later; "
+                   f"{'stop confirmed' if 'stop confirmed' in log else 'NOT confirmed'}")
+    assert trim_s < 0.25 and "stop confirmed" in log
+    # The bridge is gone: AUTO's demand reaches nothing, the rover stops and stays (passthrough at the RC input).
+    time.sleep(2.0)
+    assert side.sitl.stopped()
+    mon.command(mavlink.MAV_CMD_DO_SET_MODE, 1, MANUAL)  # the bridge is gone: the monitor tidies up
+    mon.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
