@@ -200,10 +200,11 @@ def test_reports_from_another_port_or_component_or_outside_autopilot_modes_are_n
     assert "demand.taken" not in rig.core.counters
 
 
-def test_the_speed_loop_holds_each_wheel_at_its_share_of_the_demand() -> None:
-    # A weak motor: each wheel turns at 60 % of what the open-loop map says. The loop raises the PWM until the
-    # measured speed is the demand's share (10.47 rad/s at 1750), which copying the PWM would not.
-    rig = DriveRig(dataclasses.replace(fast(), control=Profile().control))
+def weak_motor_in_auto(speed_loop: bool) -> tuple[DriveRig, float]:
+    """A weak motor: each wheel turns at 60 % of what the open-loop map says; the demand is 1750 (half) for 5 s.
+    Returns the rig and the wheels' final measured speed."""
+    p = profile(demand={"speed_loop": speed_loop})
+    rig = DriveRig(dataclasses.replace(p, control=Profile().control))  # closed_loop, the shipped gains
     rig.heartbeat(0.0, mode=AUTO)
     measured = 0.0
     for k in range(1, 200):
@@ -216,8 +217,23 @@ def test_the_speed_loop_holds_each_wheel_at_its_share_of_the_demand() -> None:
         rig.core.on_wheels(MeasuredWheels(t, WheelSpeeds(measured, measured)), t)
         if k % 40 == 0:
             rig.heartbeat(t, mode=AUTO)
+    return rig, measured
+
+
+def test_with_demand_speed_loop_the_loop_holds_each_wheel_at_its_share_of_the_demand() -> None:
+    # The loop raises the PWM until the measured speed is the demand's share (10.47 rad/s at 1750), which
+    # copying the PWM would not.
+    rig, measured = weak_motor_in_auto(speed_loop=True)
     assert measured == pytest.approx(0.5 * TOP_RAD_S, rel=0.03)
     assert rig.core.last_wheel_pwm is not None and rig.core.last_wheel_pwm.left_us > 1800
+
+
+def test_by_default_the_demand_is_not_closed_a_second_time() -> None:
+    # The autopilot's own speed and turn-rate loops close around its demand: the bridge maps it (limits, PWM
+    # map) and leaves the correcting to them, so the weak wheel stays at 60 % of the demand's share here.
+    rig, measured = weak_motor_in_auto(speed_loop=False)
+    assert rig.core.last_wheel_pwm is not None and rig.core.last_wheel_pwm.left_us == 1750
+    assert measured == pytest.approx(0.6 * 0.5 * TOP_RAD_S, rel=0.03)
 
 
 _RIGS: dict[tuple[int, int, int], DriveRig] = {}

@@ -166,7 +166,8 @@ class Arbiter:
         if state is CommandState.DIRECT and direct is not None:
             return stage.direct_output(direct, now_s)
         moving = state in _DRIVING or (state is CommandState.HOLD and stage.limiter.current != _ZERO)
-        msgs, reports, fault = stage.drive_output(now_s, moving)
+        speed_loop = self.active is None or self.active.speed_loop
+        msgs, reports, fault = stage.drive_output(now_s, moving, speed_loop)
         out = msgs + said + reports
         if fault is not None:
             out += self._fault(fault, now_s)

@@ -83,6 +83,7 @@ class AutopilotNavigation:
         self.wheels = wheels
         self._count = count
         self.timeout_s = p.timeout_s
+        self.speed_loop = p.speed_loop  # its demand is closed by the autopilot's own controllers (params)
         self._fields = (f"servo{p.left_output}_raw", f"servo{p.right_output}_raw")
         self._drive = stage.drive
         self._tops = tuple((-lo, hi) for lo, hi in (stage.outputs.speed_range(left=True),

@@ -54,6 +54,7 @@ class Driver(Protocol):
 
     name: str  # its name in the mode table ([modes]): "gcs", "targets", "autopilot"
     braking_text: tuple[int, str] | None  # what BRAKING says when its request brakes (None: the usual)
+    speed_loop: bool  # the bridge's wheel-speed loop closes around its target ([control] closed_loop)
 
     @property
     def request(self) -> Any: ...

@@ -43,6 +43,7 @@ class GcsRequests:
 
     name: str = "gcs"
     braking_text: tuple[int, str] | None = None
+    speed_loop: bool = True
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter, vehicle: VehicleState,
                  modes: ModeTable, wheels: Wheels, count: Callable[[str], None]) -> None:

@@ -79,6 +79,7 @@ class PositionTargets:
 
     name: str = "targets"
     braking_text: tuple[int, str] | None = None
+    speed_loop: bool = True
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter, pose_source: PoseSource | None,
                  vehicle: VehicleState, wheels: Wheels, gcs: GcsRequests, modes: ModeTable,

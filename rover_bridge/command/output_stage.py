@@ -83,8 +83,10 @@ class OutputStage:
 
     # ----------------------------------------------------------------- one output
 
-    def drive_output(self, now_s: float, moving: bool) -> tuple[list[Outgoing], list[Outgoing], WiringFault | None]:
-        """The override for the limiter's twist now (neutral unless `moving`): (messages, reports, a fault)."""
+    def drive_output(self, now_s: float, moving: bool,
+                     speed_loop: bool = True) -> tuple[list[Outgoing], list[Outgoing], WiringFault | None]:
+        """The override for the limiter's twist now (neutral unless `moving`): (messages, reports, a fault).
+        Without `speed_loop` the PWM map alone turns wheel speeds into PWM; the loop starts afresh after."""
         last = self.last_output_s
         period = self.period_s
         dt_s = period if last is None else min(period, now_s - last)  # since the last output (the speed loop)
@@ -95,7 +97,9 @@ class OutputStage:
         if moving:
             wheels, said = self._slip_limited(wheels, now_s)
             command = wheels
-            if self.loop is not None:
+            if self.loop is not None and not speed_loop:
+                self.loop.reset()
+            elif self.loop is not None:
                 result = self.loop.command(wheels, dt_s, now_s, pre_scaled=wheels is not raw,
                                            freeze=self._slip_hold is not None)
                 command = result.command
