@@ -24,6 +24,8 @@ L = 0.30
 
 
 def _core(**sections: dict[str, Any]) -> EstimateCore:
+    # The drives here send at 20 Hz: that is the rate these tests ask for unless they say otherwise.
+    sections = {**sections, "estimator": {"stream_rate_hz": 20.0, **sections.get("estimator", {})}}
     profile: Profile = profile_from_dict(sections)
     identity = Identity.from_profile(profile)
     return EstimateCore(profile, identity, Reporter(identity))

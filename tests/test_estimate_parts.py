@@ -17,7 +17,7 @@ from rover_bridge.estimate.diagnostics import (
     CalibrationReports,
     SlipMonitor,
 )
-from rover_bridge.estimate.ekf import IW, IX, IY, IYAW, N_CAL
+from rover_bridge.estimate.models import IW, IX, IY, IYAW, N_STATES
 from rover_bridge.estimate.gyro import GYRO_SILENT_S, GyroSelector
 from rover_bridge.estimate.publish import OdometryPublisher, quality, reference_covariances, sigma_xy
 from rover_bridge.estimate.resets import POSE_RESET_COMMAND, ResetCounter, requested_pose
@@ -179,7 +179,7 @@ def test_gyro_fixed_source_and_stale_stamps() -> None:
 # ------------------------------------------------------------------------------------ publish
 
 def _state() -> tuple[np.ndarray, np.ndarray]:
-    x = np.zeros(N_CAL)
+    x = np.zeros(N_STATES)
     x[IX], x[IY], x[IYAW], x[IW] = 1.0, 2.0, 0.5, 0.3
     P = np.diag([0.01, 0.04, 0.001, 0.1, 0.2, 1e-4, 1e-3, 1e-3])  # noqa: N806
     return x, P
@@ -329,8 +329,8 @@ def test_odometry_covariances_are_the_general_constructions(seed: int, anchored:
     from rover_bridge.frames import LocalAnchor
 
     rng = np.random.default_rng(seed)
-    x = rng.normal(size=N_CAL)
-    a = rng.normal(size=(N_CAL, N_CAL))
+    x = rng.normal(size=N_STATES)
+    a = rng.normal(size=(N_STATES, N_STATES))
     P = a @ a.T  # noqa: N806
     anchor = LocalAnchor(1.5, -2.0, rotation) if anchored else None
     pub = OdometryPublisher(OdometryParams())
