@@ -17,8 +17,8 @@ from rover_bridge.estimate.diagnostics import (
     CalibrationReports,
     SlipMonitor,
 )
-from rover_bridge.estimate.models import IW, IX, IY, IYAW, N_STATES
 from rover_bridge.estimate.gyro import GYRO_SILENT_S, GyroSelector
+from rover_bridge.estimate.models import IW, IX, IY, IYAW, N_STATES
 from rover_bridge.estimate.publish import OdometryPublisher, quality, reference_covariances, sigma_xy
 from rover_bridge.estimate.resets import POSE_RESET_COMMAND, ResetCounter, requested_pose
 from rover_bridge.estimate.streams import (

@@ -1,8 +1,7 @@
-"""The wheel + gyro EKF (pure): filterpy's ExtendedKalmanFilter running the models of models.py.
+"""The wheel + gyro EKF (pure): filterpy running the models of models.py.
 
-filterpy runs every step (arc_ekf.ArcKalmanFilter: its KalmanFilter's predict and update, on the model
-linearised at the state, Joseph's form). Around it, what a filter needs
-in a sampled, imperfect world:
+filterpy runs every step (arc_ekf.ArcKalmanFilter: its KalmanFilter's predict and update, on the models
+linearised at the state). Around it, what a filter needs in a sampled, imperfect world:
 
 - Time is an argument everywhere (`t_s`, any monotonic time line). The filter keeps the time of its
   state and never moves backwards: a measurement older than the state, or less than SAME_INSTANT_S
@@ -15,11 +14,10 @@ in a sampled, imperfect world:
   then the likelier culprit). The wheels' heading row is never refused: a jump in it is a lost
   reference, and their heading error takes it (_heading_jump).
 - Wheel intervals are judged first (wheel_judge.py: standstill, slip, whether the wheels' heading is
-  trusted). A gyro bias known from rest is not learnt from wheels in motion (a Schmidt "consider"
-  state for that update: filterpy's update has no such notion, so its value and variance are put back).
-- Trapezoid corrections of yaw (between gyro samples) and distance (between wheel readings): the
-  constant-rate prediction otherwise lags every change of rate by half a sample. Cumulative wheel
-  distances move the pose the real distance over a first interval or a gap.
+  trusted). A gyro bias known from rest is not learnt from wheels in motion: a Schmidt "consider"
+  state for that update (filterpy's update has no such notion: a correction after it, see
+  arc_ekf.ArcKalmanFilter.update_rows).
+- Trapezoid corrections of yaw and distance between samples (sampling.py).
 - Publishing extrapolates at most EXTRAPOLATE_MAX_S past the last measurement; restart_motion
   continues from that held pose.
 
@@ -29,7 +27,7 @@ without, the profile's is taken as exact, and how far the wheels are off shows a
 """
 
 # Kalman-filter notation (F, H, P, Q, R, S) reads better than pep8 names here.
-# ruff: noqa: N802, N806
+# ruff: noqa: N802, N803, N806
 from __future__ import annotations
 
 import math
@@ -54,30 +52,27 @@ from rover_bridge.estimate.models import (
     SIGMA0_OMEGA,
     SIGMA0_POSE,
     SIGMA0_V,
-    F_jacobian,
     Mat,
     NoiseModel,
     Vec,
-    fx,
+    ahead,
     process_noise,
     wheel_heading_noise,
-    wheel_rate_partials,
     wheel_rates,
+    wheel_rates_jacobian,
 )
+from rover_bridge.estimate.sampling import SampleCorrections
 from rover_bridge.estimate.wheel_judge import GEOMETRY_UNKNOWN, WheelInterval, WheelJudge
 from rover_bridge.odometry import Pose2D, wrap_angle
 
 BIAS_KNOWN_RAD_S = 0.002  # a bias this well known is not learnt from wheels in motion (module docstring)
-GYRO_SAMPLING_FACTOR = 0.2  # the heading's noise per change of rate between two gyro samples (update)
 MAX_CONSECUTIVE_REJECTS = 5
 MAX_PREDICT_STEP_S = 0.1
 # Longer gaps are not integrated (predict_to): at most this / MAX_PREDICT_STEP_S sub-steps per call.
 MAX_PREDICT_GAP_S = 1.0
 EXTRAPOLATE_MAX_S = 0.2  # publishing: how far past the last measurement the pose may move
 COAST_S = 0.3  # a rover whose motors lost power stops within about this (distance = speed x this, 1 sigma)
-TRAPEZOID_MAX_DT_S = 0.2  # longer gyro gaps: no trapezoid correction (the rate is not linear over them)
 SAME_INSTANT_S = 1e-3
-_RATE_STATES = (IV, IW, IKT, IKR)  # the states the wheels' rates depend on (models.wheel_rate_partials)
 GYRO = "gyro"
 WHEELS = "wheels"
 
@@ -94,10 +89,10 @@ class WheelUpdate:
 
 
 class WheelGyroEKF:
-    """filterpy's Kalman filter on the models of models.py (module docstring).
+    """The extended Kalman filter on the models of models.py, run by filterpy (module docstring).
 
-    `ekf` is filterpy's filter: `ekf.x` (9) and `ekf.P` (9 x 9) are the state, replaced (not changed in
-    place) by every step, as filterpy does.
+    `ekf` is filterpy's filter: `ekf.x` (9) and `ekf.P` (9 x 9) are its live state (filterpy replaces
+    them at every step; between steps the corrections here change them in place: copy what you keep).
     """
 
     def __init__(self, track_width_m: float, noise: NoiseModel | None = None, calibrate: bool = False,
@@ -111,14 +106,9 @@ class WheelGyroEKF:
         self.calibrate = calibrate
         self._kf: Any = ArcKalmanFilter(self.track_width_m, learn_geometry=calibrate)
         self.judge = WheelJudge(self.track_width_m, self.noise)
+        self.sampling = SampleCorrections()
         self.time_s: float | None = None
         self._pending_gyro: tuple[float, float] | None = None  # (t, omega) passed its gate, not yet fused
-        # Trapezoid bookkeeping between gyro samples and wheel readings (see _after_gyro, _after_wheels).
-        self._gyro_prev: tuple[float, float] | None = None  # (time, omega after that update)
-        self._turned_since_gyro_rad = 0.0
-        self._alpha_rad_s2 = 0.0  # the yaw rate's rate of change between the last two gyro samples
-        self._wheels_prev: tuple[float, float] | None = None  # (time, v after that update)
-        self._moved_since_wheels_m = 0.0
         self.wheel_yaw_rad = 0.0  # the wheels' cumulative heading (models: z_wheels[1])
         self._gyro_var = self.noise.gyro_noise_rad_s ** 2
         self._heading_var = wheel_heading_noise(self.track_width_m, self.noise)
@@ -128,10 +118,7 @@ class WheelGyroEKF:
         self.heading_jumps = 0  # times the wheels' heading jumped beyond the gate (see _heading_jump)
         geometry = GEOMETRY_UNKNOWN if calibrate else None  # None: the profile's, exactly
         start = pose if pose is not None else Pose2D()
-        x = np.zeros(N_STATES)
-        x[IX], x[IY], x[IYAW] = start.x_m, start.y_m, start.yaw_rad
-        x[IKT] = x[IKR] = 1.0
-        self._kf.x = x
+        self._kf.x = np.array([start.x_m, start.y_m, start.yaw_rad, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0])
         self._kf.P = np.diag(np.square([SIGMA0_POSE, SIGMA0_POSE, SIGMA0_POSE, SIGMA0_V, SIGMA0_OMEGA, SIGMA0_BIAS,
                                         geometry.track_scale if geometry else 0.0,
                                         geometry.radius_ratio if geometry else 0.0, SIGMA0_POSE]))
@@ -153,8 +140,8 @@ class WheelGyroEKF:
 
     @property
     def pose(self) -> Pose2D:
-        x = self.ekf.x
-        return Pose2D(float(x[IX]), float(x[IY]), float(x[IYAW]))
+        self._flush()
+        return self.peek_pose()
 
     def peek_pose(self) -> Pose2D:
         """The pose at the filter's time without fusing a waiting gyro sample first (bookkeeping that must
@@ -169,7 +156,7 @@ class WheelGyroEKF:
     def calibration(self) -> tuple[float, float, float, float]:
         """(track_scale, sigma, radius_ratio, sigma): the geometry the filter has (sigma 0: the profile's, taken
         as exact, without calibration)."""
-        x, P = self.ekf.x, self.ekf.P
+        x, P = self.x, self._kf.P
         return (float(x[IKT]), math.sqrt(max(0.0, float(P[IKT, IKT]))), float(x[IKR]),
                 math.sqrt(max(0.0, float(P[IKR, IKR]))))
 
@@ -197,41 +184,30 @@ class WheelGyroEKF:
         self.predict_steps += steps
         kf = self._kf
         for _ in range(steps):
-            v, w = float(kf.x[IV]), float(kf.x[IW])
+            self.sampling.predicted(float(kf.x[IV]), float(kf.x[IW]), dt)
             kf.predict_arc(dt)
-            self._turned_since_gyro_rad += w * dt
-            self._moved_since_wheels_m += v * dt
         self.time_s = t_s
 
     def _lookahead_s(self, t_s: float) -> float:
         return 0.0 if self.time_s is None or not t_s > self.time_s else t_s - self.time_s
 
-    def _ahead(self, x: Vec, dt_s: float) -> Vec:
-        """The state moved on by dt_s (publishing: at most EXTRAPOLATE_MAX_S), along the arc of the speeds
-        the rates of change of the last two wheel intervals and gyro samples carry them to at dt_s / 2 (the
-        wheels and the gyro are read at 20-50 Hz: a spin that starts or stops changes its rate by 10 rad/s^2,
-        half a degree over 40 ms at a constant one)."""
-        step = min(dt_s, EXTRAPOLATE_MAX_S)
-        moving = x.copy()
-        moving[IV] += 0.5 * self.judge.accel_m_s2 * step
-        moving[IW] += 0.5 * self._alpha_rad_s2 * step
-        out = fx(moving, step, self.track_width_m)
-        out[IV], out[IW] = x[IV], x[IW]
-        return out
+    def _ahead(self, x: Vec, dt_s: float) -> tuple[Vec, Mat]:
+        return ahead(x, min(dt_s, EXTRAPOLATE_MAX_S), self.judge.accel_m_s2, self.sampling.alpha_rad_s2,
+                     self.track_width_m)
 
     def pose_at(self, t_s: float) -> Pose2D:
-        """The pose predicted to t_s (see _ahead), the filter unchanged (and a gyro sample waiting for its
-        wheel reading, a few ms, not fused: see extrapolate)."""
+        """The pose predicted to t_s (models.ahead, at most EXTRAPOLATE_MAX_S), the filter unchanged (and a
+        gyro sample waiting for its wheel reading, a few ms, not fused: see extrapolate)."""
         x = self._kf.x
         dt = self._lookahead_s(t_s)
         if dt > 0.0:
-            x = self._ahead(x, dt)
+            x = self._ahead(x, dt)[0]
         return Pose2D(float(x[IX]), float(x[IY]), float(x[IYAW]))
 
     def extrapolate(self, t_s: float, block: int = N_STATES) -> tuple[list[float], list[list[float]]]:
         """State and covariance (rows of its first `block` states: ODOMETRY's are PUBLISHED) predicted to
         t_s, without changing the filter. The pose moves on for at most EXTRAPOLATE_MAX_S past the last
-        measurement (a silent link may be a rebooting autopilot whose motors stopped; see _ahead); the
+        measurement (a silent link may be a rebooting autopilot whose motors stopped; models.ahead); the
         covariance keeps growing. A look-ahead for publishing, not a step of the filter: F P F' + Q with the
         same F and Q filterpy's predict takes, on the block only. (A gyro sample waiting for the wheel
         reading of its instant, a few ms, shows in the next one.)"""
@@ -241,9 +217,10 @@ class WheelGyroEKF:
         x, P = kf.x, kf.P[:block, :block]
         dt = self._lookahead_s(t_s)
         if dt > 0.0:
-            F = F_jacobian(x, min(dt, EXTRAPOLATE_MAX_S), self.track_width_m)[:block, :block]
             Q = process_noise(x, dt, kf.learn_geometry)[:block, :block] * max(1.0, dt / MAX_PREDICT_STEP_S)
-            x, P = self._ahead(x, dt), F @ P @ F.T + Q
+            x, F = self._ahead(x, dt)
+            F = F[:block, :block]
+            P = F @ P @ F.T + Q
         return x.tolist(), P.tolist()
 
     def restart_motion(self, t_s: float, new_time_s: float | None = None) -> None:
@@ -253,7 +230,7 @@ class WheelGyroEKF:
         near the held pose; nothing measured the silence, so the pose covariance takes the coasting
         distance and the speeds restart at zero with their initial uncertainty.
         """
-        held_m = float(self.ekf.x[IV]) * min(self._lookahead_s(t_s), EXTRAPOLATE_MAX_S)
+        held_m = float(self.x[IV]) * min(self._lookahead_s(t_s), EXTRAPOLATE_MAX_S)
         xs, ps = self.extrapolate(t_s)
         x, P = np.array(xs), np.array(ps)
         coast_m = abs(float(x[IV])) * COAST_S
@@ -270,26 +247,20 @@ class WheelGyroEKF:
         # The held pose is at t_s; the filter's clock goes on from new_time_s (an autopilot that
         # rebooted restarts its boot clock near zero).
         self.time_s = t_s if new_time_s is None else new_time_s
-        self._gyro_prev = self._wheels_prev = None
-        self._alpha_rad_s2 = 0.0
         self.judge.restart()
-        self._turned_since_gyro_rad = 0.0
-        # The held pose already moved this far of the wheels' next interval.
-        self._moved_since_wheels_m += held_m
+        self.sampling.restart(held_m)  # the held pose already moved this far of the wheels' next interval
 
     def wheel_baseline(self) -> None:
         """The next wheel interval starts here (first reading, re-base after a reboot or resync); the wheels'
         heading restarts at the filter's (yaw + error), so it measures turns from here on: the error state's
         error is then exactly minus the yaw's (its row of P is minus the yaw's)."""
-        self._wheels_prev = None
-        self._moved_since_wheels_m = 0.0
+        self.sampling.wheel_baseline()
         self.judge.restart()
-        x, P = self.ekf.x, self._kf.P.copy()
+        x, P = self.x, self._kf.P
         self.wheel_yaw_rad = float(x[IYAW]) + float(x[IWY])
         P[IWY, :] = -P[IYAW, :]
         P[:, IWY] = -P[:, IYAW]
         P[IWY, IWY] = P[IYAW, IYAW]
-        self._kf.P = P
 
     # -- updates
     def _gate(self, sensor: str, d2: float) -> bool:
@@ -310,13 +281,16 @@ class WheelGyroEKF:
         if not (S > 0.0 and self._gate(GYRO, y * y / S)):  # S > 0 unless P is broken: never fused then
             return False
         self._pending_gyro = (t_s, omega_rad_s)
-        self._trapezoid(t_s, omega_rad_s)  # at once: a wheel reading of this instant measured that turn
+        # At once: a wheel reading of this instant measured that turn.
+        missed_rad, var = self.sampling.gyro(t_s, omega_rad_s - float(x[IB]))
+        x[IYAW] = wrap_angle(float(x[IYAW]) + missed_rad)
+        P[IYAW, IYAW] += var
         return True
 
     def _flush(self) -> None:
         """Fuse a waiting gyro sample alone."""
         if self._pending_gyro is not None:
-            self._update(None, None)
+            self._update(None, False)
 
     def update_wheels(self, t_s: float, d_left_m: float, d_right_m: float, dt_s: float,
                       gyro_omega_rad_s: float | None = None, gyro_spread_rad_s: float = 0.0) -> WheelUpdate:
@@ -330,47 +304,45 @@ class WheelGyroEKF:
         if pending is not None and not abs(t_s - pending[0]) < SAME_INSTANT_S:
             self._flush()
         self.predict_to(t_s)
-        self.wheel_yaw_rad += (d_right_m - d_left_m) / self.track_width_m
-        interval = WheelInterval(d_left_m, d_right_m, dt_s, gyro_omega_rad_s, gyro_spread_rad_s)
+        L = self.track_width_m
+        self.wheel_yaw_rad += (d_right_m - d_left_m) / L
         kf = self._kf
-        j = self.judge.judge(t_s, interval, kf.x, kf.P)
-        if j.heading_var != float(kf.P[IWY, IWY]):  # slip, or the wheels not trusted: their heading error is free
-            P = kf.P.copy()
-            P[IWY, IWY] = j.heading_var
-            kf.P = P
-        self._heading_jump()
-        x, P = kf.x.tolist(), kf.P
-        h = wheel_rate_partials(x[IV], x[IW], x[IKT], x[IKR], self.track_width_m)[0]  # at v, omega, kt, kr
-        y = j.z_v - wheel_rates(x, self.track_width_m)[0]
-        d2 = y * y / (sum(h[a] * h[b] * float(P[i, k]) for a, i in enumerate(_RATE_STATES)
-                          for b, k in enumerate(_RATE_STATES)) + j.r_v)
+        x, P = kf.x, kf.P
+        j = self.judge.judge(t_s, WheelInterval(d_left_m, d_right_m, dt_s, gyro_omega_rad_s, gyro_spread_rad_s), x, P)
+        P[IWY, IWY] = j.heading_var  # slip, or the wheels not trusted: their heading error is free
+        self._heading_jump(x, P)
+        h = wheel_rates_jacobian(x, L)[0]
+        y = j.z_v - wheel_rates(x, L)[0]
+        d2 = y * y / (float(h @ P @ h) + j.r_v)
         accepted = self._gate(WHEELS, d2)
         if accepted:
-            self._update((j.z_v, j.r_v), not j.stationary and float(kf.P[IB, IB]) < BIAS_KNOWN_RAD_S ** 2)
-            self._after_wheels(t_s, d_left_m, d_right_m, j.slip)
+            self._update((j.z_v, j.r_v), not j.stationary and float(P[IB, IB]) < BIAS_KNOWN_RAD_S ** 2)
+            x = kf.x
+            q = float(x[IKR])
+            missed_m = self.sampling.wheels(t_s, float(x[IV]), None if j.slip else
+                                            (d_left_m + q * d_right_m) / (1.0 + q))
+            yaw = float(x[IYAW])
+            x[IX] += math.cos(yaw) * missed_m
+            x[IY] += math.sin(yaw) * missed_m
         else:
             self._flush()
-            self._moved_since_wheels_m = 0.0  # the next interval starts at this reading
+            self.sampling.wheels_refused()
         return WheelUpdate(accepted, j.slip, j.stationary, j.slip_d2, d2)
 
-    def _heading_jump(self) -> None:
+    def _heading_jump(self, x: Vec, P: Mat) -> None:
         """The wheels' heading further from the filter's (yaw + error) than the gate: they lost their
         reference (slip the interval's test missed, a wheel in the air, a miscounted reading). The error
         state takes the jump (process noise of its size), so the wheels measure turns from here on."""
-        x, P = self._kf.x, self._kf.P
         y = math.remainder(self.wheel_yaw_rad - float(x[IYAW]) - float(x[IWY]), 2.0 * math.pi)
         S = float(P[IYAW, IYAW] + 2.0 * P[IYAW, IWY] + P[IWY, IWY]) + self._heading_var
         if y * y > self._gate2 * S:
             self.heading_jumps += 1
-            P = P.copy()
             P[IWY, IWY] += y * y
-            self._kf.P = P
 
-    def _update(self, wheels: tuple[float, float] | None, bias_known: bool | None) -> None:
+    def _update(self, wheels: tuple[float, float] | None, bias_known: bool) -> None:
         """One filterpy update of the waiting gyro sample (if any) and the wheels' (speed z, variance) with
-        their heading (if given). `bias_known`: the bias is a consider state of this update (the module
-        docstring): its value and variance are put back after it, which is the Schmidt update exactly (with
-        its gain row zeroed, Joseph's form leaves P as filterpy's but for its own variance)."""
+        their heading (if given). `bias_known`: the bias is a consider state of this update (module
+        docstring; arc_ekf.ArcKalmanFilter.update_rows)."""
         kf = self._kf
         gyro = self._pending_gyro
         self._pending_gyro = None
@@ -382,66 +354,19 @@ class WheelGyroEKF:
         if gyro is not None:
             z.append(gyro[1])
             r.append(self._gyro_var)
-        x0, P0 = kf.x, kf.P
-        kf.update_rows(np.array(z), np.diag(r), wheels is not None, gyro is not None)
-        if bias_known:
-            kf.x[IB], kf.P[IB, IB] = x0[IB], P0[IB, IB]
+        R = np.zeros((len(r), len(r)))
+        R.flat[:: len(r) + 1] = r
+        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None, IB if bias_known else None)
         kf.x[IYAW] = wrap_angle(float(kf.x[IYAW]))
-
-    def _trapezoid(self, t_s: float, omega_rad_s: float) -> None:
-        """The prediction turned at piecewise-constant rates, while the body's rate moved from the last gyro
-        sample's to this one's (bias removed). Without this every change of yaw rate leaves a heading error
-        of (change x half a sample period), 1.3 deg per spin at 20 Hz. Samples of a rate that changed
-        between them integrate to the turn only up to the curve of the rate in between: the heading takes
-        that much noise (the wheels' count is exact)."""
-        kf = self._kf
-        omega_now = omega_rad_s - float(kf.x[IB])
-        prev = self._gyro_prev
-        self._alpha_rad_s2 = 0.0
-        if prev is not None and 0.0 < t_s - prev[0] <= TRAPEZOID_MAX_DT_S:
-            dt = t_s - prev[0]
-            self._alpha_rad_s2 = (omega_now - prev[1]) / dt
-            kf.x = kf.x.copy()
-            kf.x[IYAW] = wrap_angle(float(kf.x[IYAW]) + 0.5 * (prev[1] + omega_now) * dt - self._turned_since_gyro_rad)
-            sampling = GYRO_SAMPLING_FACTOR * (omega_now - prev[1]) * dt
-            if sampling:
-                kf.P = kf.P.copy()
-                kf.P[IYAW, IYAW] += sampling * sampling
-        self._gyro_prev = (t_s, omega_now)
-        self._turned_since_gyro_rad = 0.0
-
-    def _after_wheels(self, t_s: float, d_left_m: float, d_right_m: float, slip: bool) -> None:
-        """The wheels measured how far the rover went over the interval; the prediction moved it at the
-        state's speed, which is the mean speed of the interval before (the wheels measure means), half an
-        interval late in every change of speed: v * dt / 2 behind after each acceleration (12 mm at 0.5 m/s
-        and 20 Hz). The cumulative distances put it where it is. Slipping wheels overstate the distance:
-        the trapezoid of the speeds instead."""
-        x = self._kf.x
-        v_now = float(x[IV])
-        prev = self._wheels_prev
-        missed: float | None = None
-        if not slip:
-            q = float(x[IKR])
-            missed = (d_left_m + q * d_right_m) / (1.0 + q) - self._moved_since_wheels_m
-        elif prev is not None and 0.0 < t_s - prev[0] <= TRAPEZOID_MAX_DT_S:
-            missed = 0.5 * (prev[1] + v_now) * (t_s - prev[0]) - self._moved_since_wheels_m
-        if missed is not None:
-            yaw = float(x[IYAW])
-            x[IX] += math.cos(yaw) * missed
-            x[IY] += math.sin(yaw) * missed
-        self._wheels_prev = (t_s, v_now)
-        self._moved_since_wheels_m = 0.0
 
     # -- resets
     def set_pose(self, pose: Pose2D, sigma_m: float = SIGMA0_POSE, sigma_yaw_rad: float = SIGMA0_POSE) -> None:
         """Put the pose at `pose` with a small uncertainty; velocities, bias and geometry are kept, and the
         wheels' heading turns with the pose (it is in the filter's frame)."""
-        x, P = self.ekf.x.copy(), self._kf.P.copy()
+        x, P = self.x, self._kf.P
         self.wheel_yaw_rad += wrap_angle(pose.yaw_rad - float(x[IYAW]))
         x[IX], x[IY], x[IYAW] = pose.x_m, pose.y_m, wrap_angle(pose.yaw_rad)
         P[0:3, :] = 0.0
         P[:, 0:3] = 0.0
         P[IX, IX] = P[IY, IY] = sigma_m ** 2
         P[IYAW, IYAW] = sigma_yaw_rad ** 2
-        self._kf.x, self._kf.P = x, P
-

@@ -28,7 +28,7 @@ state itself (slip: see ekf.py) take the difference, and the gyro holds the head
 bias is learnt wherever the wheels are trusted: at rest, driving straight and turning.
 
 Every model is a pure function of the state (and dt, the track) so tests can check the Jacobians by
-finite differences; filterpy's ExtendedKalmanFilter runs them (ekf.py).
+finite differences; filterpy's ExtendedKalmanFilter runs them (arc_ekf.py, ekf.py).
 """
 
 # Kalman-filter notation (F, H, Q, R) reads better than pep8 names here.
@@ -143,23 +143,9 @@ def wheel_rates_jacobian(x: Vec | Floats, track_width_m: float) -> Mat:
     return J
 
 
-def fx(x: Vec, dt_s: float, track_width_m: float) -> Vec:
-    """Motion model: move along the arc of (v, omega) for dt_s; the wheels' heading error grows by what
-    they make of the motion; everything else is constant."""
-    out = x.copy()
-    _, _, yaw, v, w, _, _, _, _ = x.tolist()
-    a, b = arc_factors(w * dt_s)
-    c, s = math.cos(yaw), math.sin(yaw)
-    fwd, left = v * dt_s * a, v * dt_s * b
-    out[IX] += c * fwd - s * left
-    out[IY] += s * fwd + c * left
-    out[IYAW] = wrap_angle(yaw + w * dt_s)
-    out[IWY] += (wheel_rates(x, track_width_m)[1] - w) * dt_s
-    return out
-
-
-def F_jacobian(x: Vec, dt_s: float, track_width_m: float) -> Mat:
-    """d fx / d x."""
+def motion(x: Vec, dt_s: float, track_width_m: float) -> tuple[Vec, Mat]:
+    """Motion model and its Jacobian, (fx, F): move along the arc of (v, omega) for dt_s; the wheels' heading
+    error grows by what they make of the motion; everything else is constant."""
     _, _, yaw, v, w, _, kt, q, _ = x.tolist()
     ds, dyaw = v * dt_s, w * dt_s
     a, b = arc_factors(dyaw)
@@ -167,14 +153,43 @@ def F_jacobian(x: Vec, dt_s: float, track_width_m: float) -> Mat:
     c, s = math.cos(yaw), math.sin(yaw)
     fwd, left = ds * a, ds * b
     dfwd, dleft = ds * da * dt_s, ds * db * dt_s  # d/domega: dyaw = omega dt
+    (_, _, _, _), (r_v, r_w, r_kt, r_kr) = wheel_rate_partials(v, w, kt, q, track_width_m)
+    out = x.copy()
+    out[IX] += c * fwd - s * left
+    out[IY] += s * fwd + c * left
+    out[IYAW] = wrap_angle(yaw + dyaw)
+    out[IWY] += (wheel_rates(x, track_width_m)[1] - w) * dt_s
     F = _IDENTITY.copy()
     F[IX, IYAW], F[IY, IYAW] = -s * fwd - c * left, c * fwd - s * left
     F[IX, IV], F[IY, IV] = dt_s * (c * a - s * b), dt_s * (s * a + c * b)
     F[IX, IW], F[IY, IW] = c * dfwd - s * dleft, s * dfwd + c * dleft
     F[IYAW, IW] = dt_s
-    r_v, r_w, r_kt, r_kr = wheel_rate_partials(v, w, kt, q, track_width_m)[1]
     F[IWY, IV], F[IWY, IW], F[IWY, IKT], F[IWY, IKR] = r_v * dt_s, (r_w - 1.0) * dt_s, r_kt * dt_s, r_kr * dt_s
-    return F
+    return out, F
+
+
+def fx(x: Vec, dt_s: float, track_width_m: float) -> Vec:
+    """The motion model (motion)."""
+    return motion(x, dt_s, track_width_m)[0]
+
+
+def F_jacobian(x: Vec, dt_s: float, track_width_m: float) -> Mat:
+    """d fx / d x (motion)."""
+    return motion(x, dt_s, track_width_m)[1]
+
+
+def ahead(x: Vec, dt_s: float, accel_m_s2: float, alpha_rad_s2: float, track_width_m: float
+          ) -> tuple[Vec, Mat]:
+    """The state moved on by dt_s (publishing's look-ahead) along the arc of the speeds their rates of
+    change carry them to at dt_s / 2, the speeds themselves kept, and the Jacobian of that motion: wheels
+    and gyro are read at 20-50 Hz, and a spin that starts or stops changes its rate by 10 rad/s^2 (half
+    a degree over 40 ms at a constant rate)."""
+    moving = x.copy()
+    moving[IV] += 0.5 * accel_m_s2 * dt_s
+    moving[IW] += 0.5 * alpha_rad_s2 * dt_s
+    out, F = motion(moving, dt_s, track_width_m)
+    out[IV], out[IW] = x[IV], x[IW]
+    return out, F
 
 
 def process_noise(x: Vec | Floats, dt_s: float, learn_geometry: bool = True) -> Mat:
@@ -184,9 +199,11 @@ def process_noise(x: Vec | Floats, dt_s: float, learn_geometry: bool = True) -> 
     dist_m = abs(float(x[IV])) * dt_s
     turn_rad = abs(float(x[IW])) * dt_s
     pos = Q_POS_PER_M * dist_m
-    return np.diag([pos, pos, Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad, Q_V * dt_s, Q_OMEGA * dt_s,
-                    Q_BIAS * dt_s, q_geometry, q_geometry,
-                    Q_WHEEL_YAW_PER_M * dist_m + Q_WHEEL_YAW_PER_RAD * turn_rad])
+    Q = np.zeros((N_STATES, N_STATES))
+    Q.flat[:: N_STATES + 1] = (pos, pos, Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad, Q_V * dt_s, Q_OMEGA * dt_s,
+                               Q_BIAS * dt_s, q_geometry, q_geometry,
+                               Q_WHEEL_YAW_PER_M * dist_m + Q_WHEEL_YAW_PER_RAD * turn_rad)
+    return Q
 
 
 # ---------------------------------------------------------------- measurements

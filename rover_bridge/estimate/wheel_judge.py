@@ -183,11 +183,12 @@ class WheelJudge:
             self.window.clear()
             return
         L = self.track_width_m
-        self.window.add(w.dt_s, (w.d_right_m - w.d_left_m) / L, disagreement_rad,
-                        (self.noise.gyro_noise_rad_s ** 2 + w.gyro_spread_rad_s ** 2) * w.dt_s * w.dt_s,
-                        0.5 * (w.d_left_m + w.d_right_m))
-        agree = self.window.agree(float(P[IB, IB]), self._reading_var,
-                                  (math.sqrt(float(P[IKT, IKT])), math.sqrt(float(P[IKR, IKR]))), L)
+        turn_rad, dist_m = (w.d_right_m - w.d_left_m) / L, 0.5 * (w.d_left_m + w.d_right_m)
+        geometry_rad = math.sqrt(float(P[IKT, IKT])) * abs(turn_rad) + math.sqrt(float(P[IKR, IKR])) * abs(dist_m) / L
+        self.window.add(w.dt_s, turn_rad, disagreement_rad,
+                        (self.noise.gyro_noise_rad_s ** 2 + w.gyro_spread_rad_s ** 2) * w.dt_s * w.dt_s, dist_m,
+                        geometry_rad)
+        agree = self.window.agree(float(P[IB, IB]), self._reading_var)
         if agree is False:
             self.trusted = self._may_trust = False
         elif agree and self._may_trust:
