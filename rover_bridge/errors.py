@@ -19,6 +19,12 @@ class ConfigError(RoverBridgeError):
         super().__init__("\n".join(self.problems))
 
 
+class LinkError(RoverBridgeError):
+    """A MAVLink link could not be opened (nothing listening, no device, address in use): one line that
+    says which link and what to check. Not a configuration error: the same command may work once the
+    autopilot is up, so the process exits 1 (systemd restarts it), not 2."""
+
+
 class RemoteError(RoverBridgeError):
     """A peer sent something we cannot use (malformed, out of range, refused)."""
 

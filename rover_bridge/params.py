@@ -140,9 +140,52 @@ class NavigationParams:
                                   unit="deg", lo=0.5, hi=45.0)
     report_hz: float = _p(4.0, "While a target is followed: NAV_CONTROLLER_OUTPUT and POSITION_TARGET_* to the "
                           "ground stations at this rate.", unit="Hz", lo=0.2, hi=50.0)
-    guided_modes: tuple[int, ...] = _p(
-        (15,), "Autopilot modes (HEARTBEAT custom_mode) in which position targets are taken (ArduPilot Rover: "
-        "15 = GUIDED); a change to another mode cancels the target.", lo=0, hi=4294967295)
+
+
+MODE_NUMBER = (0, 4294967295)  # HEARTBEAT custom_mode
+
+
+@dataclass(frozen=True, slots=True)
+class ModesParams:
+    """Which driver holds the wheels in which autopilot mode (HEARTBEAT custom_mode; ArduPilot Rover's numbers
+    by default). A mode in no list stops, as in `stop`."""
+
+    gcs: tuple[int, ...] = _p(
+        (0, 1, 3, 15), "Modes in which a ground station's velocity requests and MANUAL_CONTROL drive the wheels "
+        "(ArduPilot Rover: 0 MANUAL, 1 ACRO, 3 STEERING, 15 GUIDED).", lo=MODE_NUMBER[0], hi=MODE_NUMBER[1])
+    targets: tuple[int, ...] = _p(
+        (15,), "Modes in which position targets are taken (15 GUIDED); leaving them cancels a running target, and "
+        "DO_REPOSITION's change-mode flag asks the autopilot for the lowest of them.",
+        lo=MODE_NUMBER[0], hi=MODE_NUMBER[1])
+    autopilot: tuple[int, ...] = _p(
+        (5, 6, 8, 9, 10, 11, 12), "Modes in which the autopilot navigates itself and its per-wheel demand "
+        "([demand]) drives the wheels through the bridge's limits and speed loop (5 LOITER, 6 FOLLOW, 8 DOCK, "
+        "9 CIRCLE, 10 AUTO, 11 RTL, 12 SMART_RTL): missions, return home, fence and failsafe actions.",
+        lo=MODE_NUMBER[0], hi=MODE_NUMBER[1])
+    stop: tuple[int, ...] = _p(
+        (4,), "Modes in which the bridge brakes to a stop and holds neutral, refusing requests until the mode "
+        "changes; a GCS asking for one stops the rover at once (4 HOLD: a GCS's Hold, Pause and Stop buttons; PX4 "
+        "Hold is 50593792).", lo=MODE_NUMBER[0], hi=MODE_NUMBER[1])
+
+
+@dataclass(frozen=True, slots=True)
+class DemandParams:
+    """The autopilot's own per-wheel demand, read from SERVO_OUTPUT_RAW while it navigates ([modes] autopilot)."""
+
+    left_output: int = _p(
+        5, "Servo output whose SERVO_OUTPUT_RAW value is the autopilot's left-wheel demand (ArduPilot: "
+        "SERVOn_FUNCTION = 73 ThrottleLeft on an unconnected output).", lo=1, hi=16)
+    right_output: int = _p(6, "Servo output carrying the right-wheel demand (SERVOn_FUNCTION = 74 ThrottleRight).",
+                           lo=1, hi=16)
+    pwm_min: int = _p(1000, "The demand outputs' full reverse (their SERVOn_MIN).", unit="us", lo=500, hi=2500)
+    pwm_trim: int = _p(1500, "The demand outputs' no demand (their SERVOn_TRIM).", unit="us", lo=500, hi=2500)
+    pwm_max: int = _p(2000, "The demand outputs' full forward (their SERVOn_MAX).", unit="us", lo=500, hi=2500)
+    timeout_s: float = _p(
+        0.3, "No SERVO_OUTPUT_RAW for this long while the autopilot drives: brake through the limiter, as a "
+        "request timeout does.", unit="s", lo=0.05, hi=5.0)
+    rate_hz: float = _p(
+        40.0, "SERVO_OUTPUT_RAW rate asked of the autopilot (ArduPilot grants at most 0.8 x SCHED_LOOP_RATE: 40 Hz "
+        "at its default 50).", unit="Hz", lo=1.0, hi=200.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -228,11 +271,6 @@ class SafetyParams:
     attitude_timeout_s: float = _p(1.0, "Earth-frame (heading) requests need an ATTITUDE yaw younger than "
                                    "this; a stale yaw brakes the rover like a request timeout.",
                                    unit="s", lo=0.05, hi=10.0)
-    stop_modes: tuple[int, ...] = _p(
-        (4,), "Autopilot modes (HEARTBEAT custom_mode) in which the bridge brakes to a stop, drops the request "
-        "and holds neutral; it drives again only on a fresh request after the mode has changed. ArduPilot "
-        "Rover: 4 = HOLD (what a GCS's Hold, Pause and Stop buttons select); PX4 Hold is 50593792. [] to "
-        "disable.", lo=0, hi=4294967295)
     loop_watchdog_s: float = _p(
         0.7, "If the bridge's loop has not completed a pass for this long (a hang), a separate thread sends "
         "neutral and release and ends the process with exit 1 (systemd restarts it); 0 disables. Keep it "
@@ -241,6 +279,25 @@ class SafetyParams:
         0.3, "On exit, after neutral and release, wait at most this long for the autopilot's proof that it "
         "processed them (its answer to a TIMESYNC sent after them; resent every 0.1 s), then close the link.",
         unit="s", lo=0.05, hi=5.0)
+
+
+@dataclass(frozen=True, slots=True)
+class TimingParams:
+    budget_fraction: float = _p(
+        0.8, "Each periodic output (overrides, ODOMETRY, heartbeats): the work of the pass that sends it "
+        "(wake-up to the frame written) should take at most this fraction of its period; longer passes are "
+        "counted (over_budget).", lo=0.0, lo_open=True, hi=1.0)
+    deadline_fraction: float = _p(
+        0.95, "Each periodic output must leave within this fraction of its period after its scheduled time "
+        "on its grid (the previous one's scheduled time plus the period); later ones are counted as late and "
+        "reported to the ground station (STATUSTEXT) while it lasts.", lo=0.0, lo_open=True, hi=1.0)
+    report_window_s: float = _p(
+        10.0, "Late outputs are reported when they start, at most once per this window while they go on "
+        "(with the count over it), and as over once a whole window passes without one.", unit="s",
+        lo=1.0, hi=600.0)
+    log_interval_s: float = _p(
+        60.0, "How often the loop logs its timing (outputs sent, late, over budget, worst): INFO, WARNING if "
+        "any output was late; 0 disables.", unit="s", lo=0.0, hi=86400.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -346,10 +403,13 @@ class Profile:
     limits: LimitsParams = field(default_factory=LimitsParams)
     command: CommandParams = field(default_factory=CommandParams)
     navigation: NavigationParams = field(default_factory=NavigationParams)
+    modes: ModesParams = field(default_factory=ModesParams)
+    demand: DemandParams = field(default_factory=DemandParams)
     output: OutputParams = field(default_factory=OutputParams)
     control: ControlParams = field(default_factory=ControlParams)
     encoders: EncoderParams = field(default_factory=EncoderParams)
     safety: SafetyParams = field(default_factory=SafetyParams)
+    timing: TimingParams = field(default_factory=TimingParams)
     mavlink: MavlinkParams = field(default_factory=MavlinkParams)
     estimator: EstimatorParams = field(default_factory=EstimatorParams)
     odometry: OdometryParams = field(default_factory=OdometryParams)
@@ -505,6 +565,10 @@ def _cross_checks(p: Profile, bad: frozenset[str] = frozenset()) -> list[str]:
     if (checkable("command.rate_hz", "safety.heartbeat_timeout_s")
             and 1.0 / p.command.rate_hz >= p.safety.heartbeat_timeout_s):
         problems.append("command.rate_hz: outputs must refresh faster than safety.heartbeat_timeout_s")
+    tm = p.timing
+    if checkable("timing.budget_fraction", "timing.deadline_fraction") and tm.budget_fraction > tm.deadline_fraction:
+        problems.append(f"timing: budget_fraction {tm.budget_fraction} is past deadline_fraction "
+                        f"{tm.deadline_fraction}: the work must fit before the deadline")
     for i, src in enumerate(p.security.allowed_sources):
         parts = src.split(":")
         ok = len(parts) == 2 and parts[0].isdigit() and 0 < int(parts[0]) <= 255 and (
@@ -512,10 +576,47 @@ def _cross_checks(p: Profile, bad: frozenset[str] = frozenset()) -> list[str]:
         if not ok:
             problems.append(f"security.allowed_sources[{i}]: expected 'sysid:compid' or 'sysid:*', "
                             f"got {src!r}")
+    problems += _mode_table_problems(p, checkable)
     if (checkable("security.require_signed_commands", "security.key_file")
             and p.security.require_signed_commands and not p.security.key_file):
         problems.append("security: require_signed_commands = true needs key_file")
     return problems
+
+
+def _mode_table_problems(p: Profile, checkable: Any) -> list[str]:
+    """[modes]: one owner per mode; [demand]: a usable PWM range, two outputs, a timeout the rate can meet."""
+    problems = []
+    m = p.modes
+    if checkable("modes.gcs", "modes.targets", "modes.autopilot", "modes.stop"):
+        bridge = set(m.gcs) | set(m.targets)
+        for mode in sorted(set(m.stop) & (bridge | set(m.autopilot))):
+            problems.append(f"modes: mode {mode} is in stop and in another list; a stop mode has no driver")
+        for mode in sorted(set(m.autopilot) & bridge):
+            problems.append(f"modes: mode {mode} is in autopilot and in gcs/targets; in one mode either the "
+                            "autopilot's navigation or the bridge's requests hold the wheels")
+    d = p.demand
+    if (checkable("demand.pwm_min", "demand.pwm_trim", "demand.pwm_max")
+            and not d.pwm_min < d.pwm_trim < d.pwm_max):
+        problems.append(f"demand: expected pwm_min < pwm_trim < pwm_max, got {d.pwm_min} / {d.pwm_trim} / "
+                        f"{d.pwm_max}")
+    if checkable("demand.left_output", "demand.right_output") and d.left_output == d.right_output:
+        problems.append(f"demand: left_output and right_output are both {d.left_output}")
+    if checkable("demand.timeout_s", "demand.rate_hz") and d.timeout_s < 2.0 / d.rate_hz:
+        problems.append(f"demand.timeout_s: {d.timeout_s:g} s is shorter than two SERVO_OUTPUT_RAW periods at "
+                        f"demand.rate_hz ({2.0 / d.rate_hz:g} s)")
+    o = p.output
+    if (o.mode == "servo" and m.autopilot and checkable("output.left_channel", "output.right_channel")
+            and {o.left_channel, o.right_channel} & {d.left_output, d.right_output}):
+        problems.append("output: in servo mode the wheel outputs must not be the demand outputs "
+                        f"(demand.left_output {d.left_output}, right_output {d.right_output})")
+    return problems
+
+
+# Keys that moved: a profile still using one is refused with where it went (no two sources of truth).
+MOVED_KEYS = {
+    "safety.stop_modes": "stop",
+    "navigation.guided_modes": "targets",
+}
 
 
 def curve_problems(pwm_us: tuple[float, ...], speed_rad_s: tuple[float, ...]) -> list[str]:
@@ -573,6 +674,12 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "<profile>") -> Pro
         values: dict[str, Any] = {}
         for key, value in table.items():
             info = by_section[sec_name].get(key)
+            moved = MOVED_KEYS.get(f"{sec_name}.{key}")
+            if info is None and moved is not None:
+                shown = toml_value(tuple(value) if isinstance(value, list) else value)
+                problems.append(f"{sec_name}.{key}: moved to the mode table: write `{moved} = {shown}` under [modes] "
+                                "(which driver holds the wheels in which autopilot mode; see check-params --table)")
+                continue
             if info is None:
                 hint = difflib.get_close_matches(key, list(by_section[sec_name]), n=1)
                 extra = f" (did you mean {hint[0]!r}?)" if hint else ""
@@ -595,13 +702,37 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "<profile>") -> Pro
     return profile
 
 
+# The profiles shipped with the package (package data, one copy: params/ in a clone links to these).
+PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
+
+
+def packaged_profiles() -> list[str]:
+    """Names of the packaged profiles (``default``, ``ardupilot-sitl-skid``): what ``--params NAME`` takes."""
+    return sorted(p.stem for p in PROFILES_DIR.glob("*.toml"))
+
+
+def find_profile(name_or_path: str | Path) -> Path:
+    """The file a ``--params`` value means: the path itself when it exists, else for a bare name
+    (``default``, ``default.toml``: no directory part) the packaged profile of that name, so the
+    default works from any working directory and in any install."""
+    path = Path(name_or_path)
+    if path.exists() or path.parent != Path("."):
+        return path
+    packaged = PROFILES_DIR / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
+    return packaged if packaged.is_file() else path
+
+
 def load_profile(path: str | Path) -> Profile:
-    """Read and validate a TOML profile; ConfigError lists every problem with its key path."""
-    path = Path(path)
+    """Read and validate a TOML profile (a path or a packaged profile's name, ``find_profile``);
+    ConfigError lists every problem with its key path."""
+    given = path
+    path = find_profile(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ConfigError([f"{path}: cannot read profile: {exc.strerror or exc}"]) from exc
+        hint = (f" (packaged profiles: {', '.join(packaged_profiles())}; `rover-bridge init {given}` writes one "
+                "to start from)") if isinstance(exc, FileNotFoundError) else ""
+        raise ConfigError([f"{given}: cannot read profile: {exc.strerror or exc}{hint}"]) from exc
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -625,17 +756,17 @@ def profile_to_toml(profile: Profile) -> str:
             lines.append(f"# {info.name} = (unset){unit}")
         else:
             comment = f"  # {info.spec.unit}" if info.spec.unit else ""
-            lines.append(f"{info.name} = {_toml_value(value)}{comment}")
+            lines.append(f"{info.name} = {toml_value(value)}{comment}")
     return "\n".join(lines) + "\n"
 
 
-def _toml_value(value: Any) -> str:
+def toml_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(value, tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
     return repr(value)
 
 
@@ -643,7 +774,7 @@ def markdown_table() -> str:
     """The README's parameter reference, generated from the declarations."""
     rows = ["| key | type | unit | default | valid | meaning |", "|---|---|---|---|---|---|"]
     for info in iter_params():
-        default = "unset" if info.default is None else _toml_value(info.default)
+        default = "unset" if info.default is None else toml_value(info.default)
         type_name = info.type_name + (" (optional)" if info.optional else "")
         rows.append(f"| `{info.path}` | {type_name} | {info.spec.unit} | `{default}` | {info.range_text} | "
                     f"{info.spec.help} |")

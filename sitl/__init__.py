@@ -13,6 +13,10 @@ In-process use::
     emu.step(0.01)          # lockstep: read, advance physics, send what is due
     emu.truth.x_m
     emu.close()
+
+Rover's own navigation (missions in AUTO, RTL, SMART_RTL, fence and failsafe actions) is in
+``sitl.rover`` and the modules it names; ``sitl.gcs.InProcessGcs`` is a scripted ground station for an
+in-process emulator (missions, modes, commands).
 """
 
 from sitl.autopilot import MODE_GUIDED, MODE_HOLD, MODE_MANUAL, Autopilot, ReceivedMessage
@@ -20,6 +24,7 @@ from sitl.config import ConfigError, VehicleConfig, load_vehicle
 from sitl.emulator import Emulator
 from sitl.endpoint import ConnectionStringError, PortInUseError
 from sitl.faults import FaultConfig, LinkFaults
+from sitl.gcs import InProcessGcs
 from sitl.physics import PhysicsState, TruthState
 from sitl.scenario import Scenario, load_scenario
 
@@ -32,6 +37,7 @@ __all__ = [
     "ConnectionStringError",
     "Emulator",
     "FaultConfig",
+    "InProcessGcs",
     "LinkFaults",
     "PhysicsState",
     "PortInUseError",

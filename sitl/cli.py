@@ -72,10 +72,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if overrides:
             vehicle = VehicleConfig.from_mapping({**_as_mapping(vehicle), **overrides})
         scenario = load_scenario(args.scenario) if args.scenario else Scenario()
+        emu = Emulator(vehicle=vehicle, scenario=scenario, seed=args.seed, system_id=args.sysid)  # checks params
     except ConfigError as exc:
         print(f"rover-sitl: {exc}", file=sys.stderr)
         return 2
-    emu = Emulator(vehicle=vehicle, scenario=scenario, seed=args.seed, system_id=args.sysid)
     try:
         emu.open(args.connect)
     except ConnectionStringError as exc:

@@ -88,9 +88,14 @@ class VehicleConfig:
     rate_extra1_hz: float = 1.0
     rate_extra2_hz: float = 0.0
     rate_extra3_hz: float = 1.0
-    # Ground-truth origin for SIMSTATE lat/lng (ArduPilot's CMAC SITL home).
+    # Ground-truth origin for SIMSTATE lat/lng (ArduPilot's CMAC SITL home) and the heading the robot
+    # starts with (degrees clockwise from north; ArduPilot's SITL starts CMAC at 353).
     origin_lat_deg: float = -35.363261
     origin_lon_deg: float = 149.165230
+    start_heading_deg: float = 0.0
+    # Autopilot parameters' boot values (name, value), as a defaults .parm file sets them; in a profile
+    # a table: [vehicle.params] SERVO5_FUNCTION = 73. Unknown names are refused when the emulator starts.
+    params: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -184,6 +189,11 @@ class VehicleConfig:
             if field is None:
                 problems.append(f"unknown key {key!r}")
                 continue
+            if key == "params":
+                pairs = _param_pairs(value, problems)
+                if pairs is not None:
+                    kwargs[key] = pairs
+                continue
             default = field.default
             if value is None and default is None:
                 ok = True  # an optional value left unset ("equal to nominal")
@@ -206,6 +216,22 @@ class VehicleConfig:
             return cls(**kwargs)
         except ConfigError as exc:
             raise ConfigError(source, list(exc.problems)) from None
+
+
+def _param_pairs(value: Any, problems: list[str]) -> tuple[tuple[str, float], ...] | None:
+    """A params table (or pairs) as sorted (name, value) pairs; bad entries are added to ``problems``."""
+    items = value.items() if isinstance(value, Mapping) else value if isinstance(value, list | tuple) else None
+    if items is None:
+        problems.append("params: must be a table of NAME = number")
+        return None
+    pairs: list[tuple[str, float]] = []
+    for entry in items:
+        name, number = entry if isinstance(entry, tuple | list) and len(entry) == 2 else (entry, None)
+        if not isinstance(name, str) or not isinstance(number, int | float) or isinstance(number, bool):
+            problems.append(f"params: {name!r} needs a number, got {number!r}")
+            continue
+        pairs.append((name, float(number)))
+    return tuple(sorted(pairs))
 
 
 def read_toml(p: Path) -> dict[str, Any]:

@@ -39,6 +39,47 @@ class _Collector:
         self.packets.append(bytes(data))
 
 
+class _World:
+    """What acts on the robot in a physics step besides its motors: the scenario and the sensors' noise.
+
+    Independent seeded streams, so enabling faults does not change the sensor noise."""
+
+    def __init__(self, vehicle: VehicleConfig, scenario: Scenario, seed: int) -> None:
+        self.vehicle = vehicle
+        self.scenario = scenario
+        self._noise_rng = random.Random(f"sitl-noise-{seed}")
+        self._dropout_rng = random.Random(f"sitl-dropout-{seed}")
+
+    def inputs(self, s: PhysicsState, t_us: int, left_cmd: float, right_cmd: float) -> physics.StepInputs:
+        time_s = t_us / 1e6
+        half = 0.5 * self.vehicle.track_true_m
+        # Wheel contact points in NED: body y is to the right, the left wheel at -track/2.
+        lx, ly = s.x_m + half * math.sin(s.yaw_rad), s.y_m - half * math.cos(s.yaw_rad)
+        rx, ry = s.x_m - half * math.sin(s.yaw_rad), s.y_m + half * math.cos(s.yaw_rad)
+        sc = self.scenario
+        rate = self.vehicle.encoder_dropout_rate
+        noise = (
+            self._noise_rng.gauss(0.0, self.vehicle.gyro_noise_rad_s)
+            if self.vehicle.gyro_noise_rad_s
+            else 0.0
+        )
+        left_ok = sc.encoder_ok("left", time_s) and not (rate and self._dropout_rng.random() < rate)
+        right_ok = sc.encoder_ok("right", time_s) and not (rate and self._dropout_rng.random() < rate)
+        return physics.StepInputs(
+            left_cmd=left_cmd,
+            right_cmd=right_cmd,
+            left_slip=sc.slip_ratio("left", time_s, lx, ly),
+            right_slip=sc.slip_ratio("right", time_s, rx, ry),
+            left_encoder_ok=left_ok,
+            right_encoder_ok=right_ok,
+            gyro_noise_rad_s=noise,
+            left_speed_scale=sc.speed_scale("left", time_s),
+            right_speed_scale=sc.speed_scale("right", time_s),
+            left_stalled=sc.stalled("left", time_s),
+            right_stalled=sc.stalled("right", time_s),
+        )
+
+
 class Emulator:
     """An ArduPilot-Rover-like autopilot on a differential-drive robot, stepped in lockstep."""
 
@@ -63,12 +104,11 @@ class Emulator:
         self._mav_in = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self._mav_in.robust_parsing = True  # corrupted bytes become counted bad data, not exceptions
         self.autopilot = Autopilot(self.vehicle, self._mav_out, system_id, component_id)
-        # Independent seeded streams, so enabling faults does not change the sensor noise.
-        self._noise_rng = random.Random(f"sitl-noise-{seed}")
-        self._dropout_rng = random.Random(f"sitl-dropout-{seed}")
+        self._world = _World(self.vehicle, self.scenario, seed)
         self._link_in = FaultyLink(self.faults.inbound, seed=hash_seed(seed, "in"))
         self._link_out = FaultyLink(self.faults.outbound, seed=hash_seed(seed, "out"))
-        self._phys = PhysicsState()
+        start_yaw = physics.wrap_pi(math.radians(self.vehicle.start_heading_deg))
+        self._phys = PhysicsState(yaw_rad=start_yaw, ahrs_yaw_rad=start_yaw)
         self._now_us = 0
         self._scenario_reboots_done = 0
         self._endpoint: Endpoint | None = None
@@ -122,7 +162,8 @@ class Emulator:
         while t < end:
             sub = min(sub_max_us, end - t)
             self.autopilot.update(t, self._phys)
-            self._phys = physics.step(self._phys, self._step_inputs(t), sub / 1e6, self.vehicle)
+            inputs = self._world.inputs(self._phys, t, *self.autopilot.wheel_commands())
+            self._phys = physics.step(self._phys, inputs, sub / 1e6, self.vehicle)
             t += sub
         self._now_us = end
         self._phys = replace(self._phys, time_s=end / 1e6)  # exact, not a sum of floats
@@ -130,37 +171,6 @@ class Emulator:
         outgoing = self.autopilot.outbox + self.autopilot.emit(end, self._phys)
         self.autopilot.outbox = []
         self._transmit(outgoing, end)
-
-    def _step_inputs(self, t_us: int) -> physics.StepInputs:
-        left_cmd, right_cmd = self.autopilot.wheel_commands()
-        time_s = t_us / 1e6
-        s = self._phys
-        half = 0.5 * self.vehicle.track_true_m
-        # Wheel contact points in NED: body y is to the right, the left wheel at -track/2.
-        lx, ly = s.x_m + half * math.sin(s.yaw_rad), s.y_m - half * math.cos(s.yaw_rad)
-        rx, ry = s.x_m - half * math.sin(s.yaw_rad), s.y_m + half * math.cos(s.yaw_rad)
-        sc = self.scenario
-        rate = self.vehicle.encoder_dropout_rate
-        noise = (
-            self._noise_rng.gauss(0.0, self.vehicle.gyro_noise_rad_s)
-            if self.vehicle.gyro_noise_rad_s
-            else 0.0
-        )
-        left_ok = sc.encoder_ok("left", time_s) and not (rate and self._dropout_rng.random() < rate)
-        right_ok = sc.encoder_ok("right", time_s) and not (rate and self._dropout_rng.random() < rate)
-        return physics.StepInputs(
-            left_cmd=left_cmd,
-            right_cmd=right_cmd,
-            left_slip=sc.slip_ratio("left", time_s, lx, ly),
-            right_slip=sc.slip_ratio("right", time_s, rx, ry),
-            left_encoder_ok=left_ok,
-            right_encoder_ok=right_ok,
-            gyro_noise_rad_s=noise,
-            left_speed_scale=sc.speed_scale("left", time_s),
-            right_speed_scale=sc.speed_scale("right", time_s),
-            left_stalled=sc.stalled("left", time_s),
-            right_stalled=sc.stalled("right", time_s),
-        )
 
     def _fire_scenario_reboots(self, now_us: int) -> None:
         due = sum(1 for r in self.scenario.reboots if r.at_s * 1e6 <= now_us)

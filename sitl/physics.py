@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass, replace
 
 from sitl.config import VehicleConfig
+from sitl.sensors import gyro_reading_rad_s
 
 TWO_PI = 2.0 * math.pi
 
@@ -112,9 +113,9 @@ class PhysicsState:
     right_encoder_angle_rad: float = 0.0
     left_distance_true_m: float = 0.0  # signed ground-contact path of each wheel
     right_distance_true_m: float = 0.0
-    gyro_rad_s: float = 0.0  # last gyro z sample: true rate + bias + noise
+    gyro_rad_s: float = 0.0  # last gyro z sample: true rate + bias + noise, within the gyro's range
     ahrs_yaw_rad: float = 0.0  # integral of the gyro (drifts like an AHRS without compass)
-    accel_m_s2: float = 0.0  # forward acceleration over the last step
+    accel_m_s2: float = 0.0  # forward acceleration of the ground contact at the end of the last step
 
 
 def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleConfig) -> PhysicsState:
@@ -153,7 +154,15 @@ def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleC
         dx = ds * math.cos(mid)
         dy = ds * math.sin(mid)
     yaw_rate = dyaw / dt_s
-    gyro = yaw_rate + vehicle.gyro_bias_rad_s + inputs.gyro_noise_rad_s
+    gyro = gyro_reading_rad_s(yaw_rate + vehicle.gyro_bias_rad_s + inputs.gyro_noise_rad_s)
+    # The forward acceleration at the end of the step from the motor model itself (the lag's derivative),
+    # not a difference of step-average speeds: that one, over a 1 us sub-step after a 5 ms one, gave
+    # 10^4 m/s^2. A stall or a change of slip changes the speed at once here, with no acceleration.
+    tau = vehicle.motor_time_constant_s
+    left_accel = 0.0 if inputs.left_stalled else (left_target - left_w) / tau
+    right_accel = 0.0 if inputs.right_stalled else (right_target - right_w) / tau
+    accel = 0.5 * (left_accel * vehicle.left_radius_true_m * (1.0 - inputs.left_slip)
+                   + right_accel * vehicle.right_radius_true_m * (1.0 - inputs.right_slip))
     return replace(
         state,
         time_s=state.time_s + dt_s,
@@ -161,7 +170,7 @@ def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleC
         y_m=state.y_m + dy,
         yaw_rad=wrap_pi(state.yaw_rad + dyaw),
         v_m_s=ds / dt_s,
-        accel_m_s2=(ds / dt_s - state.v_m_s) / dt_s,
+        accel_m_s2=accel,
         yaw_rate_rad_s=yaw_rate,
         left_rad_s=left_w,
         right_rad_s=right_w,

@@ -26,6 +26,26 @@ GCS_SYSID = 255
 GCS_COMPID = 190
 
 
+WALL_STEP_S = 0.01  # the wall-clock helpers' largest emulator step
+CATCH_UP_S = 2.0  # beyond this much lag, the rest is one step (the emulator must not fall further behind)
+
+
+def step_wall(emu: Emulator, elapsed_s: float) -> None:
+    """Advance an emulator that runs on the wall clock by ``elapsed_s``, in steps of at most 10 ms.
+
+    A starved caller (a loaded machine) then catches up through the steps it missed, each sending the stream
+    messages due in it, stamped at their own simulated time: the bridge sees the same sensor streams at any
+    load, only later. One long step would send one sample of each stream for the whole gap (a gyro sample per
+    200 ms in a turn is a heading error of degrees)."""
+    remaining_us = max(1000, round(elapsed_s * 1e6))  # whole microseconds: the emulator's own time unit
+    step_us, caught_up_us = round(WALL_STEP_S * 1e6), 0
+    while remaining_us > 0:
+        dt_us = min(step_us, remaining_us) if caught_up_us < CATCH_UP_S * 1e6 else remaining_us
+        emu.step(dt_us / 1e6)
+        remaining_us -= dt_us
+        caught_up_us += dt_us
+
+
 class _Closable(Protocol):
     def close(self) -> None: ...
 

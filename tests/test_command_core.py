@@ -623,7 +623,7 @@ def test_shutdown_before_the_vehicle_is_known_sends_no_override() -> None:
     assert rig.core.stop_settled and rig.core.stop_confirmed is None  # nothing to wait for
 
 
-# ------------------------------------------------------------------ HOLD (safety.stop_modes)
+# ------------------------------------------------------------------ HOLD ([modes] stop)
 
 
 def drive_with_requests(rig: Rig, t0: float, t1: float, vx: float) -> list[tuple[float, Outgoing]]:
@@ -700,11 +700,11 @@ def test_a_refused_or_never_reported_hold_request_lets_the_heartbeat_govern_agai
 
 
 def test_stop_modes_are_a_parameter() -> None:
-    rig = ready(profile(safety={"stop_modes": ()}))
+    rig = ready(profile(modes={"stop": (), "gcs": (0, 1, 3, 4, 15)}))
     rig.heartbeat(0.02, mode=mavlink.ROVER_MODE_HOLD)
     rig.local(0.03, vx=0.5, mask=VEL_ONLY)
-    assert state(rig) is CommandState.ACTIVE  # HOLD is not a stop mode here
-    rig = ready(profile(safety={"stop_modes": (11,)}))  # RTL
+    assert state(rig) is CommandState.ACTIVE  # HOLD is not a stop mode here: requests drive in it
+    rig = ready(profile(modes={"stop": (11,), "autopilot": (10,)}))  # RTL
     rig.heartbeat(0.02, mode=11)
     assert state(rig) is CommandState.HOLD
 

@@ -40,9 +40,12 @@ def test_demo_runs_reports_sane_numbers_and_draws_a_png(tmp_path: Path) -> None:
 
 
 def test_goto_demo_reaches_each_target_and_says_how_close(tmp_path: Path) -> None:
-    proc = subprocess.run([sys.executable, "-m", "rover_bridge", "demo", "--scenario", "goto", "--quick",
-                           "--plot", "none"], cwd=tmp_path, capture_output=True, text=True, timeout=180)
+    proc = subprocess.run([sys.executable, "-m", "rover_bridge", "demo", "--scenario", "goto", "--quick"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    # Its own picture, beside (never over) the clean route's demo.png.
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == ["demo-goto.png"]
+    assert "picture: demo-goto.png" in proc.stdout
     rows = [line.split() for line in proc.stdout.splitlines() if line.strip().endswith(" s") and " N " in line]
     assert [r[4] for r in rows] == ["MISSION_ITEM_INT", "DO_REPOSITION", "LOCAL_NED", "GLOBAL_INT",
                                     "MISSION_ITEM_INT"]
@@ -54,9 +57,11 @@ def test_demo_leaves_no_process_behind_when_interrupted(tmp_path: Path) -> None:
     import signal
     import time
 
+    # SIGINT as a terminal leaves it (default): a harness started in the background (`cmd &` in a script)
+    # passes SIGINT ignored to its children, and then the demo would never see the Ctrl-C below.
     proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "demo", "--quick", "--plot", "none"],
                             cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         # Let it get the two children running, then Ctrl-C it as a terminal would.
         deadline = time.monotonic() + 60

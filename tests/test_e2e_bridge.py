@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from lockstep import GCS_COMPID, GCS_SYSID, Lockstep, circle_fit_radius, free_udp_port
+from lockstep import GCS_COMPID, GCS_SYSID, Lockstep, circle_fit_radius, free_udp_port, step_wall
 
 from rover_bridge.mavlink.dialect import mavlink, mavutil
 from rover_bridge.params import Profile
@@ -125,7 +125,7 @@ def _drive_emulator(emu: Emulator, seconds: float, gcs: Any = None, request: boo
             gcs.mav.set_position_target_local_ned_send(0, 1, 1, 8, 0b0101_1100_0111, 0, 0, 0, 0.5, 0, 0, 0, 0, 0,
                                                        0, 0.0)
             next_req = now + 0.1
-        emu.step(max(0.001, now - last))
+        step_wall(emu, now - last)
         last = now
         if gcs is not None:
             while gcs.recv_msg() is not None:
@@ -154,7 +154,7 @@ def test_sigterm_during_motion_releases_the_overrides(tmp_path: Path) -> None:
             assert time.monotonic() < deadline, f"bridge not up: {seen}"
             gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
             now = time.monotonic()
-            emu.step(max(0.001, now - last))
+            step_wall(emu, now - last)
             last = now
             while (m := gcs.recv_msg()) is not None:
                 if m.get_type() == "HEARTBEAT":

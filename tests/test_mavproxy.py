@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from lockstep import free_udp_port
+from lockstep import free_udp_port, step_wall
 
 from sitl import Emulator, VehicleConfig
 
@@ -88,7 +88,7 @@ def test_mavproxy_velocity_command_drives_the_rover_straight(mavproxy_env: dict[
         while True:
             now = time.monotonic()
             assert now < deadline, "MAVProxy never got the rover moving"
-            emu.step(max(0.001, now - last))
+            step_wall(emu, now - last)
             last = now
             # Once the bridge has forwarded the vehicle's heartbeat to MAVProxy, its overrides reach the emulator.
             if sending_since is None and emu.counters.get("override_accepted", 0) > 0:
@@ -121,7 +121,7 @@ def test_mavproxy_guided_drives_the_rover_to_the_point(mavproxy_env: dict[str, s
         while True:
             now = time.monotonic()
             assert now < deadline, f"MAVProxy's guided target was not reached (truth {emu.truth})"
-            emu.step(max(0.001, now - last))
+            step_wall(emu, now - last)
             last = now
             if online_since is None and emu.counters.get("override_accepted", 0) > 0:
                 online_since = now  # the bridge knows the vehicle, MAVProxy has its heartbeat by now

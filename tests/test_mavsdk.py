@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from lockstep import step_wall
 from mavsdk import ComponentType, Configuration, ConnectionResult, Mavsdk
 
 from sitl import Emulator, VehicleConfig
@@ -47,7 +48,7 @@ class WallClock(threading.Thread):
         while self.running.is_set():
             now = time.monotonic()
             with self.lock:
-                self.emu.step(max(0.001, now - last))
+                step_wall(self.emu, now - last)
             last = now
             time.sleep(0.005)
 

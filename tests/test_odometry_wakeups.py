@@ -57,7 +57,10 @@ def _drive_woken_as_run_does(ls: Lockstep, seconds: float) -> tuple[list[float],
 
 @pytest.mark.parametrize(("targets", "max_own_fraction"), [("gcs", 0.1), ("autopilot", 0.4)])
 def test_odometry_rides_on_telemetry_passes_and_keeps_its_rate(targets: str, max_own_fraction: float) -> None:
-    ls = Lockstep(_profile(targets), VehicleConfig(external_nav=targets == "autopilot"), seed=3, dt_s=0.01)
+    # Telemetry at 50 Hz by SET_MESSAGE_INTERVAL needs SCHED_LOOP_RATE 100: at Rover's default 50, ArduPilot
+    # (and the emulator) refuse intervals under 1.25 loop periods (25 ms).
+    vehicle = VehicleConfig(external_nav=targets == "autopilot", params=(("SCHED_LOOP_RATE", 100.0),))
+    ls = Lockstep(_profile(targets), vehicle, seed=3, dt_s=0.01)
     try:
         ls.run_for(4.0)  # the autopilot found, streams at 50 Hz, wheels flowing, the frame decided
         extnav = ls.emu.autopilot.extnav.counters

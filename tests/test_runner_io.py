@@ -333,10 +333,14 @@ def test_the_batch_shortens_under_a_flood_so_the_kernel_buffer_never_overflows(r
     link is not batched."""
     clock = time.monotonic
     frames = _telemetry(200)
-    for _ in range(10):  # 2000 frames in a few ms: a flood
+    # 2000 frames in 10 ms of the runner's time: a flood. The passes are stamped 1 ms apart (ending now), not
+    # by the clock: on a loaded machine pushing them takes longer, and the rate the runner measures would be
+    # the machine's, not the flood's.
+    t0 = clock() - 0.010
+    for k in range(10):
         for f in frames:
             rig.to_ap(f)
-        rig.runner.step(clock())
+        rig.runner.step(t0 + 0.001 * k)
     rate_hz = rig.runner._ap_rate_hz
     assert rate_hz * BATCH_MS * 1e-3 > 4 * AP_BATCH_MAX_FRAMES  # the full batch would pile up far more
     rig.to_ap(frames[0])

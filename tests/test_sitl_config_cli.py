@@ -43,6 +43,16 @@ def test_nothing_in_sitl_imports_rover_bridge() -> None:
                 assert name.split(".")[0] != "rover_bridge", f"{path} imports {name}"
 
 
+def test_no_class_in_sitl_is_over_300_lines() -> None:
+    sizes = {}
+    for path in sorted(SITL_DIR.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                sizes[f"{path.name}:{node.name}"] = (node.end_lineno or node.lineno) - node.lineno + 1
+    assert "autopilot.py:Autopilot" in sizes
+    assert {name: n for name, n in sizes.items() if n > 300} == {}
+
+
 def test_vehicle_profile_loads_and_bad_profile_lists_every_problem(tmp_path: Path) -> None:
     good = tmp_path / "good.toml"
     good.write_text("[vehicle]\ntrue_track_width_m = 0.32\nencoder_cpr = 2048\nstart_armed = true\n")
@@ -66,6 +76,27 @@ def test_shipped_vehicle_and_scenario_files_load() -> None:
     assert scenarios
     for path in scenarios:
         load_scenario(path)
+
+
+def test_vehicle_params_table_sets_boot_values_and_unknown_or_bad_ones_are_all_listed(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "v.toml"
+    path.write_text("[vehicle]\nleft_function = 51\n[vehicle.params]\nSERVO5_FUNCTION = 73\nWP_SPEED = 2.5\n")
+    emu = Emulator(load_vehicle(path))
+    assert (emu.get_param("SERVO5_FUNCTION"), emu.get_param("WP_SPEED")) == (73.0, 2.5)
+    emu.reboot()
+    emu.step(2.0)
+    assert emu.get_param("WP_SPEED") == 2.5  # parameters persist over a reboot
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[vehicle.params]\nNO_SUCH = 1\nALSO_NOT = 2\nWP_SPEED = "fast"\n')
+    with pytest.raises(ConfigError, match="WP_SPEED"):
+        load_vehicle(bad)
+    bad.write_text("[vehicle.params]\nNO_SUCH = 1\nALSO_NOT = 2\n")
+    with pytest.raises(ConfigError) as err:
+        Emulator(load_vehicle(bad))
+    assert set(err.value.problems) == {"unknown parameter 'NO_SUCH'", "unknown parameter 'ALSO_NOT'"}
+    assert main(["--vehicle", str(bad), "--duration", "0.1"]) == 2
+    assert "unknown parameter 'NO_SUCH'" in capsys.readouterr().err
 
 
 def test_scenario_file_and_errors(tmp_path: Path) -> None:

@@ -1,6 +1,7 @@
 """A bridge that hangs still stops the rover: sd_notify watchdog pings, and a stop that does not wait for the core.
 
-- SystemdNotifier against a fake $NOTIFY_SOCKET: READY=1, WATCHDOG=1 at half of $WATCHDOG_USEC, STOPPING=1.
+- SystemdNotifier against a fake $NOTIFY_SOCKET: READY=1, WATCHDOG=1 every quarter of $WATCHDOG_USEC on a
+  grid, STOPPING=1.
 - StopGuard on its own (pipes, a fake link, a recorded exit): signal with a loop that stops / does not
   stop in time, a loop that stalls, the answer to its probe.
 - The real process with a core that stalls on purpose (a busy loop inside `handle`, as a long computation
@@ -51,17 +52,23 @@ def _received(sock: socket.socket) -> list[str]:
             return out
 
 
-def test_notifier_sends_ready_watchdog_at_half_the_interval_and_stopping(tmp_path: Path) -> None:
+def test_notifier_sends_ready_watchdog_every_quarter_interval_on_a_grid_and_stopping(tmp_path: Path) -> None:
     sock, path = _notify_socket(tmp_path)
     n = SystemdNotifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1000000", "WATCHDOG_PID": str(os.getpid())})
     assert n.enabled and n.watchdog_s == 1.0
     n.ready()
-    for t in (0.0, 0.1, 0.49, 0.5, 0.7, 1.0):
+    pinged = []
+    for t in (0.0, 0.1, 0.24, 0.27, 0.49, 0.52, 0.74, 0.77, 0.99, 3.0, 3.2, 3.25):
+        before = n.sent
         n.ping(t)
+        if n.sent > before:
+            pinged.append(t)
     n.stopping()
     got = _received(sock)
     assert got[0].startswith("READY=1") and got[-1] == "STOPPING=1"
-    assert got.count("WATCHDOG=1") == 3  # at 0, 0.5 and 1.0: half the interval
+    # Due at 0, 0.25, 0.5, 0.75: a pass 20 ms late does not move the next one (no creeping past half the
+    # interval); after a stall (3.0) the grid restarts from the ping.
+    assert pinged == [0.0, 0.27, 0.52, 0.77, 3.0, 3.25] and got.count("WATCHDOG=1") == 6
     assert SystemdNotifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1000000", "WATCHDOG_PID": "1"}).watchdog_s \
         is None  # meant for another process
     quiet = SystemdNotifier({})
@@ -361,14 +368,24 @@ def test_a_stalled_loop_stops_the_watchdog_pings_and_the_rover(tmp_path: Path) -
 def test_the_process_tells_systemd_it_is_ready_and_pings_while_it_runs(tmp_path: Path) -> None:
     sock, path = _notify_socket(tmp_path)
     env = dict(os.environ, NOTIFY_SOCKET=path, WATCHDOG_USEC="400000")
-    proc = subprocess.run([sys.executable, "-m", "rover_bridge", "run", "--params",
-                           str(REPO / "params" / "default.toml"), "--autopilot", "udpout:127.0.0.1:9", "--gcs", "none",
-                           "--duration", "1.5"], env=env, capture_output=True, timeout=60)
-    got = _received(sock)
-    sock.close()
-    assert proc.returncode == 0, proc.stderr[-1000:]
+    # Read as the messages come (as systemd does): the socket queues only net.unix.max_dgram_qlen of them.
+    proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "run", "--params",
+                             str(REPO / "params" / "default.toml"), "--autopilot", "udpout:127.0.0.1:9", "--gcs",
+                             "none", "--duration", "1.5"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    got: list[str] = []
+    try:
+        while proc.poll() is None:
+            got += _received(sock)
+            time.sleep(0.01)
+        got += _received(sock)
+        stderr = proc.stderr.read() if proc.stderr else b""
+    finally:
+        finish_process(proc, sock)
+        if proc.stderr:
+            proc.stderr.close()
+    assert proc.returncode == 0, stderr[-1000:]
     assert got[0].startswith("READY=1") and got[-1] == "STOPPING=1"
-    assert 5 <= got.count("WATCHDOG=1") <= 12  # every 0.2 s for 1.5 s
+    assert 10 <= got.count("WATCHDOG=1") <= 20  # every 0.1 s (a quarter of 0.4 s) for 1.5 s
 
 
 def test_the_shipped_unit_uses_the_watchdog_and_restarts_failures_but_not_bad_profiles() -> None:

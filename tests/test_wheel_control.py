@@ -5,6 +5,7 @@ Units: wheel speeds in rad/s; the default profile's wheels top out at 20.944 rad
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import sys
@@ -88,16 +89,43 @@ def test_zero_targets_reset_and_never_kick_backwards() -> None:
     assert all(o.left_rad_s >= 0.0 and o.right_rad_s >= 0.0 for o in out)
 
 
-def test_stale_encoders_fall_back_to_feedforward_and_resume_without_a_jump() -> None:
+def test_stale_encoders_hold_the_learnt_correction_and_resume_without_a_jump() -> None:
     lp = loop(encoder_timeout_s=0.5)
-    t, out = run(lp, WheelSpeeds(8.0, 8.0), (6.0, 6.0), 0.0, 2.0)
+    t, out = run(lp, WheelSpeeds(8.0, 8.0), (7.5, 7.5), 0.0, 1.0)
     before, held = out[-1], list(lp.integral)
+    assert 1.0 < held[0] < lp.i_max[0]  # the loop learnt a correction for the slow wheels (not clamped)
     stale = lp.command(WheelSpeeds(8.0, 8.0), 0.05, t + 0.6)
-    assert not stale.closed and stale.command == WheelSpeeds(8.0, 8.0)  # feedforward only
-    assert lp.integral == held  # not reset, not grown
-    feed(lp, t + 0.65, 6.0, 6.0)
-    resumed = lp.command(WheelSpeeds(8.0, 8.0), 0.05, t + 0.65)
+    assert not stale.closed and stale.command == WheelSpeeds(8.0 + held[0], 8.0 + held[1])  # target + what it learnt
+    assert stale.command.left_rad_s <= before.left_rad_s + 1e-9  # no P on an old measurement: not harder
+    other = copy.deepcopy(lp)
+    slower = other.command(WheelSpeeds(4.0, 4.0), 0.05, t + 0.65)  # the correction scales with the target ...
+    assert slower.command.left_rad_s == pytest.approx(4.0 + 0.5 * held[0])
+    faster = other.command(WheelSpeeds(12.0, 12.0), 0.05, t + 0.7)  # ... and never grows past what it was
+    assert faster.command.left_rad_s == pytest.approx(12.0 + held[0])
+    backwards = other.command(WheelSpeeds(-4.0, -4.0), 0.05, t + 0.75)  # ... and turns with it
+    assert backwards.command.left_rad_s == pytest.approx(-4.0 - 0.5 * held[0])
+    assert lp.command(WheelSpeeds(8.0, 8.0), 0.05, t + 0.7).command == stale.command
+    assert lp.integral == held == other.integral  # not reset, not grown
+    feed(lp, t + 0.75, 7.5, 7.5)  # the first sample after the silence spans it: not a measurement
+    assert not lp.command(WheelSpeeds(8.0, 8.0), 0.05, t + 0.75).closed and lp.integral == held
+    feed(lp, t + 0.8, 7.5, 7.5)
+    resumed = lp.command(WheelSpeeds(8.0, 8.0), 0.05, t + 0.8)
     assert resumed.closed and abs(resumed.command.left_rad_s - before.left_rad_s) < 0.5
+
+
+def test_an_overdue_measurement_is_not_acted_on_before_the_encoders_are_stale() -> None:
+    lp = loop(encoder_timeout_s=0.5)
+    t, _ = run(lp, WheelSpeeds(8.0, 8.0), (7.5, 7.5), 0.0, 1.0)  # a sample every 50 ms
+    held = list(lp.integral)
+    one_lost = lp.command(WheelSpeeds(8.0, 8.0), 0.05, t + 0.1)  # one sample missing: still acted on
+    assert one_lost.closed and lp.integral[0] > held[0]
+    grown = list(lp.integral)
+    # 150 ms without a sample (more than 2.5 intervals), still fresh: hold, the integrators frozen, even on a
+    # ramp of the target (P on the old measurement would push harder as the reference moved away from it).
+    for k in range(1, 6):
+        overdue = lp.command(WheelSpeeds(8.0 + k, 8.0 + k), 0.05, t + 0.1 + 0.05 * k)
+        assert overdue.closed and lp.integral == grown
+        assert overdue.command.left_rad_s == pytest.approx(8.0 + k + grown[0])
 
 
 def test_a_stalled_wheel_does_not_wind_up() -> None:
@@ -130,11 +158,13 @@ def test_the_command_stays_in_range_keeps_direction_and_curvature(left: float, r
 
 
 def test_speed_filter_smooths_on_the_stamps_and_restarts_after_a_gap() -> None:
-    f = SpeedFilter(10.0)
+    f = SpeedFilter(10.0, max_interval_s=0.5)
     assert f.update(MeasuredWheels(1.0, WheelSpeeds(0.0, 0.0))) == WheelSpeeds(0.0, 0.0)
     half = f.update(MeasuredWheels(1.05, WheelSpeeds(10.0, 10.0)))
-    assert 5.0 < half.left_rad_s < 10.0
-    assert f.update(MeasuredWheels(5.0, WheelSpeeds(3.0, 3.0))) == WheelSpeeds(3.0, 3.0)  # after a gap
+    assert half is not None and 5.0 < half.left_rad_s < 10.0 and f.interval_s == pytest.approx(0.05)
+    assert f.update(MeasuredWheels(5.0, WheelSpeeds(3.0, 3.0))) is None  # the mean over a gap: not a speed
+    assert f.update(MeasuredWheels(5.05, WheelSpeeds(4.0, 4.0))) == WheelSpeeds(4.0, 4.0)  # starts again
+    assert f.update(MeasuredWheels(1.0, WheelSpeeds(2.0, 2.0))) == WheelSpeeds(2.0, 2.0)  # a clock restart
 
 
 # ------------------------------------------------------------------ wiring faults
@@ -268,3 +298,47 @@ def test_slip_compensation_holds_the_wheel_targets_until_slip_ends_and_can_be_tu
     assert "RB: wheel slip: holding wheel speeds" in texts and core.counters["slip.limited"] == 1
     free, _, _ = run(False)
     assert free[len(free) * 28 // 40] > max(during) + 20  # off: it kept accelerating
+
+
+def test_silent_encoders_never_push_a_weak_curved_motor_harder_and_the_loop_returns_cleanly() -> None:
+    """Left motor 20 % weak, a 40 us deadband, speed = command^1.5 (bench_control's rover), straight at
+    0.5 m/s in closed loop; WHEEL_DISTANCE stops for 2 s while ATTITUDE and the rest go on."""
+    from rover_bridge.command.outputs import OutputMap
+    from rover_bridge.kinematics import DiffDrive, Twist2D
+
+    profile = bench.bench_profile("closed_loop")
+    rig = bench.Rig(profile)
+    rig.start()
+    rig.drive(4.0, 0.5)
+    start, end = rig.t + 1.0, rig.t + 3.0
+    emu_step, log = rig.emu.step, rig.emu.sent_log
+    assert log is not None
+
+    def muted_step(dt_s: float = bench.STEP_S) -> None:  # the emulator's WHEEL_DISTANCE lost in the window
+        n = len(log)
+        emu_step(dt_s)
+        log[n:] = [(t, m) for t, m in log[n:] if not (m.get_type() == "WHEEL_DISTANCE" and start <= t < end)]
+
+    rig.emu.step = muted_step  # type: ignore[method-assign]
+    trace: list[tuple[float, int, int, float]] = []  # (time, left / right PWM above trim, true speed)
+
+    def sample(r: bench.Rig) -> None:
+        pwm = r.core.command.last_wheel_pwm
+        assert pwm is not None
+        trace.append((r.t, pwm.left_us - 1500, pwm.right_us - 1500, r.emu.truth.v_m_s))
+
+    rig.drive(6.0, 0.5, sample=sample)
+    open_loop = OutputMap.from_profile(profile).to_pwm(DiffDrive.from_params(profile.robot).to_wheel_speeds(
+        Twist2D(0.5, 0.0)))
+    for k, open_us in ((1, open_loop.left_us - 1500), (2, open_loop.right_us - 1500)):
+        before = max(row[k] for row in trace if start - 1.0 <= row[0] < start)
+        during = max(row[k] for row in trace if start <= row[0] < end + 0.1)  # until a sample is acted on
+        assert during <= max(before + 50, open_us + 100), (k, during, before, open_us)
+        assert before > open_us + 50  # the loop was compensating this wheel: the case that matters
+    speeds_during = [v for t, _, _, v in trace if start <= t < end]
+    assert all(abs(v - 0.5) <= 0.1 for v in speeds_during), (min(speeds_during), max(speeds_during))
+    after = [v for t, _, _, v in trace if t >= end]
+    assert max(after) <= 0.55  # no overshoot above 10 %
+    assert all(abs(v - 0.5) <= 0.015 for t, _, _, v in trace if t >= end + 2.0)  # back within 3 % in 2 s
+    assert "RB: no wheel encoders: feedforward only" in rig.texts  # said once, and the return too
+    assert rig.texts.count("RB: wheel encoders back: speed loop closed") >= 1

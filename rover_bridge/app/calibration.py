@@ -87,12 +87,9 @@ class CalibrationResult:
         def floats(values: tuple[float, ...], digits: int) -> str:
             return "[" + ", ".join(f"{v:.{digits}f}" for v in values) + "]"
 
-        lines = [f"# {line}" for line in header.splitlines()] if header else []
+        lines = robot_patch_lines(header, self.track_width_m, self.radius_ratio, self.left_radius_m,
+                                  self.right_radius_m, "from spins against the gyro")
         lines += [
-            "[robot]",
-            f"track_width_m = {self.track_width_m:.4f}  # effective (skid steering), from spins against the gyro",
-            f"left_wheel_radius_m = {self.left_radius_m:.5f}  # ratio {self.radius_ratio:.4f}, the mean kept",
-            f"right_wheel_radius_m = {self.right_radius_m:.5f}",
             "",
             "[control]",
             f"left_curve_pwm_us = {floats(self.left.pwm_us, 1)}",
@@ -101,6 +98,24 @@ class CalibrationResult:
             f"right_curve_rad_s = {floats(self.right.speed_rad_s, 3)}",
         ]
         return "\n".join(lines) + "\n"
+
+
+def robot_patch_lines(header: str, track_width_m: float, radius_ratio: float, left_radius_m: float,
+                      right_radius_m: float, source: str) -> list[str]:
+    """The header as comments and the [robot] keys of a profile patch (calibrate's, and the fleet report's)."""
+    lines = [f"# {line}" for line in header.splitlines()] if header else []
+    return [
+        *lines,
+        "[robot]",
+        f"track_width_m = {track_width_m:.4f}  # effective (skid steering), {source}",
+        f"left_wheel_radius_m = {left_radius_m:.5f}  # ratio {radius_ratio:.4f}, the mean kept",
+        f"right_wheel_radius_m = {right_radius_m:.5f}",
+    ]
+
+
+def radii_for_ratio(mean_radius_m: float, radius_ratio: float) -> tuple[float, float]:
+    """(left, right) radii with right / left = radius_ratio and their mean kept."""
+    return mean_radius_m * 2.0 / (1.0 + radius_ratio), mean_radius_m * 2.0 * radius_ratio / (1.0 + radius_ratio)
 
 
 class Calibration:
@@ -285,7 +300,7 @@ class Calibration:
                 q_values.append(num / den)
         q = sum(q_values) / len(q_values) if q_values else 1.0
         left, right = self._curves
-        return CalibrationResult(left, right, track, q, r_nom * 2.0 / (1.0 + q), r_nom * 2.0 * q / (1.0 + q))
+        return CalibrationResult(left, right, track, q, *radii_for_ratio(r_nom, q))
 
 
 def _zero_crossing(a: tuple[float, float], b: tuple[float, float], lo: float, hi: float) -> float:

@@ -1,7 +1,7 @@
 """`rover-bridge` command line: one subcommand per module in rover_bridge.app.commands.
 
 Each command module exposes `NAME`, `HELP`, `add_arguments(parser)` and `main(args) -> int`.
-Exit codes: 0 ok, 1 runtime failure, 2 bad configuration or usage.
+Exit codes: 0 ok, 1 runtime failure (a link that does not open too), 2 bad configuration or usage.
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ from types import ModuleType
 
 from rover_bridge import __version__
 from rover_bridge.app.logs import install_log_rate_limit
-from rover_bridge.errors import ConfigError
+from rover_bridge.errors import ConfigError, LinkError
 
-# Each subcommand lives in its own module (rover_bridge/commands/NAME.py).
-COMMAND_MODULES = ("run", "demo", "calibrate", "replay", "check_params", "ik")
+# Each subcommand lives in its own module (rover_bridge/app/commands/NAME.py).
+COMMAND_MODULES = ("run", "demo", "init", "calibrate", "replay", "fleet", "check_params", "ik")
 
 
 def _load(module_name: str) -> ModuleType:
@@ -52,10 +52,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         code: int = args._main(args)
     except ConfigError as exc:
-        print("rover-bridge: configuration errors:", file=sys.stderr)
-        for problem in exc.problems:
-            print(f"  - {problem}", file=sys.stderr)
+        if len(exc.problems) == 1:
+            print(f"rover-bridge: {exc.problems[0]}", file=sys.stderr)
+        else:
+            print("rover-bridge: configuration errors:", file=sys.stderr)
+            for problem in exc.problems:
+                print(f"  - {problem}", file=sys.stderr)
         return 2
+    except LinkError as exc:  # not the configuration's fault: exit 1, so systemd tries again
+        print(f"rover-bridge: {exc}", file=sys.stderr)
+        return 1
     return code
 
 

@@ -15,6 +15,7 @@ from typing import Protocol
 
 from rover_bridge.command.core import CommandCore
 from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.estimate.streams import Stream
 from rover_bridge.kinematics import MeasuredWheels
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.gate import BRIDGE_COMMANDS, CommandGate
@@ -24,6 +25,9 @@ from rover_bridge.mavlink.wire import NOTHING, Incoming, Link, Outgoing, Reactio
 from rover_bridge.params import Profile
 
 HEARTBEAT_PERIOD_S = 1.0
+_SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
+_HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
+_DEMAND_IDS = frozenset(getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in CommandCore.DEMAND_READS)
 # A gyro sample waits at most this long for the next message or tick before the estimate flow gets it.
 GYRO_HOLD_MAX_S = 0.025
 
@@ -43,6 +47,16 @@ class BridgeCore:
         self.estimate = EstimateCore(profile, self.identity, self.reporter)
         # Position targets are followed on the estimate flow's pose (rover_bridge.command.navigation).
         self.command = CommandCore(profile, self.identity, self.reporter, pose_source=self.estimate)
+        # The autopilot's demand (rover_bridge.command.demand) at the rate its driver needs, asked for by the
+        # estimate flow's stream requests (one requester, so every SET_MESSAGE_INTERVAL ACK is unambiguous; the
+        # same fallback, REQUEST_DATA_STREAM, and the same re-asking after a reboot) from the first heartbeat
+        # that reports a mode the autopilot drives in: until then nobody needs it at 40 Hz, on this link or
+        # forwarded to the ground stations.
+        self._demand: Stream | None = None
+        if profile.modes.autopilot:
+            self._demand = Stream("SERVO_OUTPUT_RAW", _SERVO_OUTPUT_RAW, mavlink.MAV_DATA_STREAM_RC_CHANNELS,
+                                  rate_hz=profile.demand.rate_hz, wanted=False)
+            self.estimate.streams.add(self._demand)
         # [security] in front of both cores: a refused frame reaches neither, nor the autopilot.
         self.gate = CommandGate(profile, self.identity, self.reporter)
         self._subcores: tuple[SubCore, ...] = (self.command, self.estimate)
@@ -106,6 +120,13 @@ class BridgeCore:
                 for observe in self.wheel_observers:
                     observe(sample, now_s)
             self.command.set_slipping(self.estimate.slip.slipping)
+        elif from_autopilot and msg_id == _SERVO_OUTPUT_RAW:
+            self.estimate.streams.arrival("SERVO_OUTPUT_RAW", now_s)
+        elif (msg_id == _HEARTBEAT and self._demand is not None and not self._demand.wanted and from_autopilot
+              and self.command.demand_wanted):
+            re_ = Reaction(re_.consumed, (*re_.out, *self.estimate.streams.want(self._demand.name, now_s)))
+            self._ap_always = self._ap_always | _DEMAND_IDS  # decoded from now on
+            self._autopilot_reads = self._ap_always | self._ap_gyro
         if not (rc.out or re_.out or held):
             return re_ if re_.consumed else rc
         return Reaction(consumed=rc.consumed or re_.consumed, out=(*held, *rc.out, *re_.out))

@@ -139,6 +139,12 @@ class Series:
     odometry_msgs: int = 0
     statustext: list[str] = field(default_factory=list)
     goto: list[GotoLeg] = field(default_factory=list)
+    # Where each segment of the route (or each go-here leg) began: its name and the boot-clock time of the
+    # last ground truth then (the picture names the segments by these).
+    segments: list[tuple[str, float]] = field(default_factory=list)
+
+    def mark(self, name: str) -> None:
+        self.segments.append((name, self.truth[-1][0] if self.truth else 0.0))
 
 
 @dataclass(frozen=True)
@@ -187,6 +193,19 @@ SCENARIOS: dict[str, tuple[str, str]] = {
     "gyro-bias": ("gyro_bias_rad_s = 0.02\n", ""),
     "goto": ("", ""),  # targets, not a route (Demo._goto)
 }
+# What each scenario shows (`demo --help`).
+SCENARIO_HELP: dict[str, str] = {
+    "clean": "the route on an exact robot",
+    "miscalibrated": "the right wheel 2 %% large, the track 3 %% wide: what the gyro corrects",
+    "slip": "each wheel slips for a few seconds: caught by the gyro",
+    "gyro-bias": "a 0.02 rad/s gyro bias: learnt at the standstill",
+    "goto": "five go-here targets from the GCS (GUIDED), each arrival error",
+}
+
+
+def picture_name(scenario: str) -> str:
+    """Each scenario's own picture: demo.png for the clean route, demo-SCENARIO.png otherwise."""
+    return "demo.png" if scenario == "clean" else f"demo-{scenario}.png"
 
 
 def _wrap(a: float) -> float:
@@ -412,6 +431,7 @@ class Demo:
         phase_end = 0.0
         for phase in phases:
             phase_end += phase.duration_s
+            self.series.mark(phase.name)
             while (t := time.monotonic() - start) < phase_end:
                 if t >= next_hb:
                     gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
@@ -455,6 +475,7 @@ class Demo:
         for n, (north, east, how) in enumerate(GOTO_COURSE):
             north, east = north * self.scale, east * self.scale
             reached_before, sent = self._reached, time.monotonic()
+            self.series.mark(f"go here {n + 1}")
             self._send_target(gcs, north, east, how)
             while not (self._reached > reached_before and self._speed_m_s < 0.01):
                 if time.monotonic() - sent > GOTO_TIMEOUT_S:
@@ -550,40 +571,6 @@ class Demo:
             rejected=rejected, odometry_rate_hz=rate)
 
 
-def plot(series: Series, errs: list[tuple[float, float, float, float, float]], path: Path,
-         title: str) -> None:
-    """Map of truth / wheel odometry / EKF, and errors over time; needs matplotlib."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax_map, ax_err) = plt.subplots(2, 1, figsize=(7, 9), gridspec_kw={"height_ratios": [3, 1.3]})
-    for data, label, style in ((series.truth, "ground truth", "k-"), (series.wheel, "wheel odometry", "C1--"),
-                               (series.ekf, "EKF (ODOMETRY)", "C0-")):
-        # East on the horizontal axis, north up: the map as seen from above.
-        ax_map.plot([p[2] for p in data], [p[1] for p in data], style, label=label, linewidth=1.4)
-    if series.goto:
-        ax_map.plot([g.east_m for g in series.goto], [g.north_m for g in series.goto], "rx", markersize=9,
-                    label="go-here targets")
-    ax_map.set_aspect("equal", adjustable="datalim")
-    ax_map.set_xlabel("east [m]")
-    ax_map.set_ylabel("north [m]")
-    ax_map.set_title(title)
-    ax_map.legend(loc="best")
-    ax_map.grid(True, alpha=0.3)
-    ts = [e[0] for e in errs]
-    ax_err.plot(ts, [e[1] for e in errs], "C1--", label="wheel odometry")
-    ax_err.plot(ts, [e[2] for e in errs], "C0-", label="EKF")
-    ax_err.set_xlabel("time [s]")
-    ax_err.set_ylabel("position error [m]")
-    ax_err.grid(True, alpha=0.3)
-    ax_err.legend(loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
 def run_demo(scenario: str, scale: float, seed: int, plot_path: Path | None,
              out: Callable[[str], None] = print) -> Summary:
     demo = Demo(scenario=scenario, scale=scale, seed=seed)
@@ -598,6 +585,8 @@ def run_demo(scenario: str, scale: float, seed: int, plot_path: Path | None,
         out("\n" + GotoLeg.table(demo.series.goto))
     if plot_path is not None:
         try:
+            from rover_bridge.app.demo_picture import plot
+
             plot(demo.series, errs, plot_path, f"rover-bridge demo ({scenario})")
             out(f"\npicture: {plot_path}")
         except ImportError:

@@ -23,6 +23,7 @@ from collections.abc import Callable, Sequence
 from typing import BinaryIO
 
 from rover_bridge.app.composition import BridgeCore
+from rover_bridge.app.deadlines import Deadlines, output_of, schedules
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.links import Endpoint
 from rover_bridge.mavlink.signing import carries_signature
@@ -110,6 +111,11 @@ class Runner:
         self.receive_times = False
         self._wall_clock: Callable[[], float] = time.time
         self._last_s = -math.inf  # the latest time the core was given: arrival times never go back past it
+        # Deadlines and budgets of the periodic outputs (rover_bridge.app.deadlines): `run` writes the frames'
+        # times by its clock; a test stepping a simulated clock has them sent at the pass's time.
+        self.timing = Deadlines(core.profile, schedules(core.profile))
+        self._sent_clock: Callable[[], float] | None = None
+        self._pass_s = 0.0
 
     @property
     def endpoints(self) -> list[Endpoint]:
@@ -120,6 +126,8 @@ class Runner:
         every frame, then tick if a deadline is due. Never blocks. `backlog` tells whether a link may
         have more frames waiting; `next_deadline_s` is the core's next deadline after this pass."""
         self.backlog = False
+        self._pass_s = now_s
+        self.timing.pass_began(now_s)
         for ep in self.endpoints if ready is None else ready:
             ep.decode_only(self.core.reads(ep.role))  # what the core reads may change (its gyro source)
             msgs = ep.read() if max_frames is None else ep.read(max_frames)
@@ -153,6 +161,15 @@ class Runner:
             self.send_all(self.core.early_tick(now_s))
             ticked = True
         self.next_deadline_s = self.core.next_deadline_s(now_s) if ticked else deadline
+        self._report_timing(now_s)
+
+    def _report_timing(self, now_s: float) -> None:
+        """Late outputs to the ground station when they start and stop; the periodic log line."""
+        for severity, key, text in self.timing.poll(now_s):
+            self.send_all(self.core.reporter.statustext(severity, text, now_s, key=key))
+        line = self.timing.log_line(now_s)
+        if line is not None:
+            log.log(logging.WARNING if line[0] else logging.INFO, "%s", line[1])
 
     def _on_message(self, ep: Endpoint, msg: MAVLinkMessage | bytes, now_s: float) -> None:
         if type(msg) is bytes:  # no core reads it: log and forward the bytes
@@ -178,9 +195,18 @@ class Runner:
             self.send_all(reaction.out)
 
     def send_all(self, out: Sequence[Outgoing]) -> None:
+        """Send the core's messages. The periodic outputs among them are accounted (rover_bridge.app.deadlines)
+        until the stop begins, each once however many frames it takes, at its first frame."""
+        accounted: tuple[str, ...] = ()
         for item in out:
             dests = [self.autopilot] if item.dest is Link.AUTOPILOT else self.gcs
+            name = None if self._stopped else output_of(item.msg)
             for ep in dests:
+                # The time read just before the write: on loopback a write wakes the reader, which may take the
+                # CPU before the write returns (a busy machine: for milliseconds), so a time read after it could
+                # count a frame late that left on time. A test stepping a simulated clock: the pass's time.
+                clock = self._sent_clock
+                written_s = self._pass_s if name is None or clock is None else clock()
                 try:
                     frame = ep.send(item.msg, item.src_system, item.src_component)
                 except PACK_ERRORS as exc:
@@ -189,6 +215,10 @@ class Runner:
                     self.pack_errors += 1
                     log.error("could not pack %s: %s", item.msg.get_type(), exc)
                     break
+                if name is not None and name not in accounted:
+                    self.timing.sent(name, written_s)
+                    accounted += (name,)
+                name = None
                 if self.tlog is not None and ep is dests[0]:
                     self.tlog.write(frame)
 
@@ -225,6 +255,7 @@ class Runner:
         extra = [wake_fd] if wake_fd is not None else []
         ready: list[Endpoint] | None = None
         self.receive_times = clock is time.monotonic
+        self._sent_clock = clock
         while not should_stop():
             self.passes += 1
             now = clock()

@@ -1,11 +1,16 @@
-"""Offline estimation over a recorded .tlog: the same core, fed the recorded frames at their
-recorded times, so a log from the rover can be re-run with other estimator parameters.
+"""Offline estimation over a recorded .tlog (or an ArduPilot DataFlash .bin, see fleet_sources): the same
+core, fed the recorded frames at their recorded times, so a log from the rover can be re-run with other
+estimator parameters.
 
 Which frames were the autopilot's: a .tlog does not say which link a frame came in on, so a
 frame counts as the autopilot's when it comes from the vehicle's system id (learned from its
 first autopilot HEARTBEAT, or `mavlink.vehicle_system_id`) and not from the bridge's own
 component. The bridge's own frames in the log (its ODOMETRY, overrides) are the "live" record
 that a replay can be compared with.
+
+The log's clock drives the estimator's clock, except where it jumps by more than LOG_JUMP_S either way
+(a companion without a real-time clock stepping its wall clock at an NTP sync): there the replay's clock
+goes on from where it was, as a monotonic clock would, instead of ticking through the jump.
 """
 
 from __future__ import annotations
@@ -14,19 +19,22 @@ import bisect
 import csv
 import itertools
 import math
-from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
+from rover_bridge.app import deadlines
 from rover_bridge.app.composition import BridgeCore
-from rover_bridge.errors import ConfigError
-from rover_bridge.mavlink.dialect import mavlink, mavutil
+from rover_bridge.app.fleet_sources import LogFrames, LogStats
+from rover_bridge.estimate.core import CalibrationEstimate, EstimateCore
+from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.wire import Incoming, Link
 from rover_bridge.params import Profile
 
 CSV_COLUMNS = ("time_usec", "x_m", "y_m", "yaw_rad", "vx_m_s", "yawspeed_rad_s", "var_x_m2", "var_y_m2",
-               "var_yaw_rad2", "var_vx", "var_yawspeed", "reset_counter", "quality")
+               "var_yaw_rad2", "var_vx", "var_yawspeed", "reset_counter", "quality", "track_scale",
+               "track_scale_sigma", "radius_ratio", "radius_ratio_sigma")
+LOG_JUMP_S = 60.0  # the log's clock stepping by more than this (either way) is a jump, not a gap
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,15 +54,22 @@ class OdometryRow:
     var_yawspeed: float
     reset_counter: int
     quality: int
+    # The filter's calibration when the row was published (replayed rows; NaN in the live ones).
+    track_scale: float = math.nan
+    track_scale_sigma: float = math.nan
+    radius_ratio: float = math.nan
+    radius_ratio_sigma: float = math.nan
 
     @classmethod
-    def from_message(cls, msg: Any) -> OdometryRow:
+    def from_message(cls, msg: Any, cal: CalibrationEstimate | None = None) -> OdometryRow:
         w, _, _, z = msg.q
         pc, vc = msg.pose_covariance, msg.velocity_covariance
+        geometry = (cal.track_scale, cal.track_scale_sigma, cal.radius_ratio, cal.radius_ratio_sigma) if cal \
+            else (math.nan,) * 4
         # Diagonal positions in a row-major 6x6 upper triangle: 0, 6, 11, 15, 18, 20.
         return cls(int(msg.time_usec), float(msg.x), float(msg.y), 2.0 * math.atan2(z, w), float(msg.vx),
                    float(msg.yawspeed), float(pc[0]), float(pc[6]), float(pc[20]), float(vc[0]), float(vc[20]),
-                   int(msg.reset_counter), int(msg.quality))
+                   int(msg.reset_counter), int(msg.quality), *geometry)
 
     def as_row(self) -> list[str]:
         return [repr(getattr(self, c)) for c in CSV_COLUMNS]
@@ -67,11 +82,14 @@ class ReplayResult:
     frames: int
     autopilot_frames: int
     counters: dict[str, int]
-    calibration: str
+    calibration: CalibrationEstimate
+    log: LogStats
+    timing: str = ""  # the bridge's own outputs against their deadlines, from the log's stamps
 
     def summary(self) -> str:
         if not self.rows:
-            return f"{self.frames} frames read, {self.autopilot_frames} from the autopilot: no ODOMETRY produced"
+            return "\n".join([f"{self.frames} frames read, {self.autopilot_frames} from the autopilot: no ODOMETRY "
+                              "produced", *self._log_notes()])
         last = self.rows[-1]
         path = sum(math.hypot(b.x_m - a.x_m, b.y_m - a.y_m) for a, b in itertools.pairwise(self.rows))
         lines = [
@@ -88,12 +106,28 @@ class ReplayResult:
             d = compare(self.rows, self.live)
             lines.append(f"vs live ODOMETRY in the log  max |dpos| {d[0]:.4f} m, "
                          f"max |dyaw| {math.degrees(d[1]):.3f} deg over {d[2]} matched rows")
-        if self.calibration:
-            lines.append(f"calibration                 {self.calibration}")
+        cal = self.calibration
+        if cal.estimated:
+            lines.append(f"calibration (1 sigma)       track scale {cal.track_scale:.4f} +- {cal.track_scale_sigma:.4f}"
+                         f"  radius ratio {cal.radius_ratio:.4f} +- {cal.radius_ratio_sigma:.4f}")
+        else:
+            lines.append("calibration                 not estimated (estimator.calibrate = false)")
+        if self.timing:
+            lines.append(f"timing (log stamps)         {self.timing}")
         interesting = {k: v for k, v in sorted(self.counters.items()) if v}
         if interesting:
             lines.append("estimator counters          " + ", ".join(f"{k}={v}" for k, v in interesting.items()))
-        return "\n".join(lines)
+        return "\n".join(lines + self._log_notes())
+
+    def _log_notes(self) -> list[str]:
+        notes = []
+        if self.log.trailing_bytes:
+            notes.append(f"WARNING: the log ends mid-frame ({self.log.trailing_bytes} bytes of an incomplete last "
+                         "frame, ignored): it was cut short")
+        if self.log.bad_frames or self.log.bad_bytes:
+            notes.append(f"WARNING: unreadable data in the log ({self.log.bad_frames} bad frames, "
+                         f"{self.log.bad_bytes} bad bytes), skipped")
+        return notes
 
 
 def _span_s(rows: tuple[OdometryRow, ...]) -> float:
@@ -102,47 +136,61 @@ def _span_s(rows: tuple[OdometryRow, ...]) -> float:
     return sum(dt for a, b in itertools.pairwise(rows) if 0 < (dt := (b.time_usec - a.time_usec) / 1e6) < 1.0)
 
 
-def _frames(path: Path) -> Iterator[Any]:
-    if not path.exists():
-        raise ConfigError([f"{path}: no such log"])
-    log: Any = mavutil.mavlink_connection(str(path), dialect="ardupilotmega", robust_parsing=True)
-    try:
-        while True:
-            msg = log.recv_msg()
-            if msg is None:
-                return
-            if msg.get_type() != "BAD_DATA":
-                yield msg
-    finally:
-        log.close()
+class ReplayObserver(Protocol):
+    """Sees the replay as it goes (rover_bridge.app.fleet_analysis): every frame not from the bridge itself,
+    after the estimator has read it, and every replayed row, each at the replay's clock (s)."""
+
+    def frame(self, t_s: float, msg: Any, estimate: EstimateCore) -> None: ...
+
+    def row(self, t_s: float, row: OdometryRow) -> None: ...
 
 
-def replay(path: str | Path, profile: Profile) -> ReplayResult:
-    """Run the estimate flow over a .tlog; deterministic: same log and profile, same rows.
+def replay(path: str | Path, profile: Profile, observer: ReplayObserver | None = None,
+           keep_rows: bool = True) -> ReplayResult:
+    """Run the estimate flow over a .tlog or a DataFlash .bin; deterministic: same log and profile, same rows.
 
     When the log holds the bridge's own ODOMETRY (a `run --tlog` recording), the estimator ticks
     exactly where the live one published, in the same order relative to the frames it had read;
-    otherwise (e.g. a MAVProxy log) it ticks at its own deadlines on the log's clock.
+    otherwise (e.g. a MAVProxy log) it ticks at its own deadlines on the log's clock. The log is
+    streamed; with keep_rows False no row is kept (an observer sees them), so memory stays bounded.
     """
-    path = Path(path)
+    log = LogFrames(path)
     own_comp = profile.mavlink.component_id
-    ticks_from_log = any(m.get_srcComponent() == own_comp and m.get_type() == "ODOMETRY" for m in _frames(path))
+    # The bridge's own ODOMETRY is a MAVLink 2 frame whose header holds its component id then the message id
+    # (331, three bytes little-endian): a log without those four bytes (a ground station's) is not read twice.
+    ticks_from_log = (log.stats.kind == "tlog" and log.contains(bytes([own_comp]) + (331).to_bytes(3, "little"))
+                      and any(m.get_srcComponent() == own_comp and m.get_type() == "ODOMETRY" for m in log))
     core = BridgeCore(profile)
     rows: list[OdometryRow] = []
     live: list[OdometryRow] = []
-    frames = ap_frames = 0
+    frames = ap_frames = jumps = 0
     clock: float | None = None
+    timing = deadlines.LogTiming(profile)  # the bridge's own periodic outputs, as the log stamped them
+    offset = 0.0  # replay clock - log clock: moves at each jump of the log's clock
+    last_log_t: float | None = None
 
     def tick(at_s: float, early: bool) -> None:
         # Where the live loop published, ODOMETRY may have left early (in a pass it made anyway).
         out = core.estimate.tick(at_s) + (core.estimate.odometry_due(at_s) if early else [])
-        rows.extend(OdometryRow.from_message(o.msg) for o in out
-                    if o.msg.get_msgId() == mavlink.MAVLINK_MSG_ID_ODOMETRY)
+        for o in out:
+            if o.msg.get_msgId() == mavlink.MAVLINK_MSG_ID_ODOMETRY:
+                row = OdometryRow.from_message(o.msg, core.estimate.calibration_estimate())
+                if keep_rows:
+                    rows.append(row)
+                if observer is not None:
+                    observer.row(at_s, row)
 
-    for msg in _frames(path):
+    for msg in log:
         frames += 1
-        t = float(msg._timestamp)
+        t_log = float(msg._timestamp)
+        if last_log_t is not None and abs(t_log - last_log_t) > LOG_JUMP_S:
+            offset += last_log_t - t_log
+            jumps += 1
+        last_log_t = t_log
+        t = t_log + offset
         if msg.get_srcComponent() == own_comp:
+            if (output := deadlines.output_of(msg)) is not None:
+                timing.written(output, t)
             if msg.get_type() == "ODOMETRY":
                 live.append(OdometryRow.from_message(msg))
                 if ticks_from_log:
@@ -160,8 +208,12 @@ def replay(path: str | Path, profile: Profile) -> ReplayResult:
         if _from_autopilot(core, msg):
             ap_frames += 1
             core.estimate.handle(Incoming(Link.AUTOPILOT, msg), t)
-    calibration = getattr(core.estimate, "calibration_report", lambda: "")()
-    return ReplayResult(tuple(rows), tuple(live), frames, ap_frames, dict(core.estimate.counters), str(calibration))
+        if observer is not None:
+            observer.frame(t, msg, core.estimate)
+    counters = dict(core.estimate.counters)
+    counters["log_clock_jumps"] = jumps
+    return ReplayResult(tuple(rows), tuple(live), frames, ap_frames, counters, core.estimate.calibration_estimate(),
+                        replace(log.stats), deadlines.summary_line(timing.outputs))
 
 
 def _from_autopilot(core: BridgeCore, msg: Any) -> bool:

@@ -21,8 +21,14 @@ only what the feedforward gets wrong is corrected (1.7 % there).
 - Resets: targets of zero (neutral, idle, timeout done, link lost, disarmed, refused, stopped) clear
   the integrators and give zero: a stop never kicks a wheel backwards. A non-zero target is never
   answered with the opposite direction either (braking is the limiter's ramp, not reverse thrust).
-- Stale encoders (no sample for encoder_timeout_s): feedforward only (u = target), the integrators
-  held as they are, so the loop resumes without a jump when samples return.
+- Missing samples: the loop acts only on a current measurement, one no older than OVERDUE_INTERVALS
+  of the encoder's own sample interval. Without one it holds: u = target + the correction the
+  integrator had learnt, scaled with the target (never more than it was, and none for a target of the
+  other sign), the integrator frozen, no P term (an old measurement against a moving reference would
+  push harder the longer the silence lasts). The speed the wheels had is kept: a weak motor stays
+  compensated instead of dropping to the bare map. A sample that spans more than encoder_timeout_s
+  (the first after a silence) is the mean over the silence, not the wheel's speed: the loop waits for
+  the next. Encoders silent for encoder_timeout_s are stale (`closed` False: the core says so once).
 - Slip (the estimator's verdict): the integrators are frozen (slipping wheels read too fast).
 - Stall handling: a wheel below STILL_FRACTION of its target for STALL_S is held (a stalled or
   jammed wheel): its integrator stops and its reference follows the measured speed, so when it is
@@ -52,37 +58,48 @@ SWAP_TOLERANCE = 0.3  # each wheel within this fraction of the other's target: s
 SWAP_MIN_DIFFERENCE = 0.3  # the two targets must differ by this fraction of the larger to tell a swap
 RUNAWAY_FACTOR = 1.5  # measured beyond this times the target (plus a margin of the top speed): runs away,
 RUNAWAY_MARGIN = 0.1  # what a closed loop does to a wheel whose encoder is another wheel's
+# A measurement is current while no older than this many of the encoder's sample intervals: one lost
+# sample (two intervals) is not a silence yet.
+OVERDUE_INTERVALS = 2.5
 
 
 class SpeedFilter:
     """First-order low-pass of the measured wheel speeds, on the samples' own stamps."""
 
-    def __init__(self, cutoff_hz: float) -> None:
+    def __init__(self, cutoff_hz: float, max_interval_s: float = 1.0) -> None:
         self.tau_s = 1.0 / (2.0 * math.pi * cutoff_hz)
+        self.max_interval_s = max_interval_s
         self.value: WheelSpeeds | None = None
+        self.interval_s: float | None = None  # between the last two samples' stamps
         self._stamp_s: float | None = None
 
-    def update(self, sample: MeasuredWheels) -> WheelSpeeds:
+    def update(self, sample: MeasuredWheels) -> WheelSpeeds | None:
+        """The filtered speeds; None for a sample that spans more than max_interval_s (the mean over a
+        silence, not the wheels' speed): the filter starts again from the next one."""
         s = sample.speeds
         last, stamp = self.value, self._stamp_s
-        if last is None or stamp is None or not sample.stamp_s > stamp or sample.stamp_s - stamp > 1.0:
-            self.value = s  # first sample, or after a gap or a clock restart: start from it
+        self._stamp_s = sample.stamp_s
+        if stamp is not None and sample.stamp_s - stamp > self.max_interval_s:
+            self.value, self.interval_s = None, None
+            return None
+        if last is None or stamp is None or not sample.stamp_s > stamp:
+            self.value = s  # first sample, or after a silence or a clock restart: start from it
         else:
             a = 1.0 - math.exp(-(sample.stamp_s - stamp) / self.tau_s)
             self.value = WheelSpeeds(last.left_rad_s + a * (s.left_rad_s - last.left_rad_s),
                                      last.right_rad_s + a * (s.right_rad_s - last.right_rad_s))
-        self._stamp_s = sample.stamp_s
+        self.interval_s = sample.stamp_s - stamp if stamp is not None and sample.stamp_s > stamp else None
         return self.value
 
     def reset(self) -> None:
-        self.value, self._stamp_s = None, None
+        self.value, self.interval_s, self._stamp_s = None, None, None
 
 
 @dataclass(frozen=True, slots=True)
 class LoopResult:
     command: WheelSpeeds  # what goes to the PWM map
     saturated: bool  # the common factor scaled the command down (or the targets were already scaled)
-    closed: bool  # the loop acted (fresh encoders); False: feedforward only
+    closed: bool  # the encoders are fresh (a sample within encoder_timeout_s); False: stale, the loop holds
 
 
 class WheelSpeedLoop:
@@ -96,8 +113,9 @@ class WheelSpeedLoop:
         self.ranges = (left_range, right_range)  # (fastest reverse, fastest forward), rad/s
         self.i_max = tuple(params.integrator_max_fraction * max(-lo, hi) for lo, hi in self.ranges)
         self.reference_s = params.reference_s
-        self.filter = SpeedFilter(params.speed_filter_hz)
+        self.filter = SpeedFilter(params.speed_filter_hz, params.encoder_timeout_s)
         self.integral = [0.0, 0.0]
+        self._learnt_at = [0.0, 0.0]  # the targets the integrators last learnt at (what a hold scales by)
         self.reference: list[float] | None = None  # None: starts from the measured speeds
         self._still_since: list[float | None] = [None, None]
         self.measured: WheelSpeeds | None = None
@@ -106,11 +124,20 @@ class WheelSpeedLoop:
     def measure(self, sample: MeasuredWheels, now_s: float) -> None:
         if not sample.speeds.is_finite():
             return
-        self.measured = self.filter.update(sample)
-        self._measured_s = now_s
+        value = self.filter.update(sample)
+        if value is not None:  # None: the mean over a silence, not a measurement
+            self.measured = value
+            self._measured_s = now_s
 
     def fresh(self, now_s: float) -> bool:
         return self._measured_s is not None and now_s - self._measured_s < self.timeout_s
+
+    def current(self, now_s: float) -> bool:
+        """Fresh, and no older than OVERDUE_INTERVALS sample intervals: a measurement the loop acts on."""
+        interval = self.filter.interval_s
+        if not self.fresh(now_s) or self._measured_s is None:
+            return False
+        return interval is None or now_s - self._measured_s <= OVERDUE_INTERVALS * interval
 
     def reset(self) -> None:
         self.integral = [0.0, 0.0]
@@ -123,15 +150,15 @@ class WheelSpeedLoop:
         if targets == (0.0, 0.0):
             self.reset()
             return LoopResult(target, False, False)
+        follow = 1.0 - math.exp(-dt_s / self.reference_s) if dt_s > 0.0 else 0.0
         measured = self.measured
-        if measured is None or not self.fresh(now_s):
-            return LoopResult(target, pre_scaled, False)  # feedforward only; the integrators wait
+        if measured is None or not self.current(now_s):
+            return self._hold(targets, follow, pre_scaled, self.fresh(now_s))
         speeds = (measured.left_rad_s, measured.right_rad_s)
         if self.reference is None:
             self.reference = list(speeds)  # the wheels are where they are: no error to correct yet
         reference = self.reference
         held = [False, False]
-        follow = 1.0 - math.exp(-dt_s / self.reference_s) if dt_s > 0.0 else 0.0
         for k in (0, 1):
             if abs(speeds[k]) < STILL_FRACTION * abs(targets[k]):
                 since = self._still_since[k]
@@ -144,7 +171,36 @@ class WheelSpeedLoop:
             else:
                 reference[k] += follow * (targets[k] - reference[k])
         errors = (reference[0] - speeds[0], reference[1] - speeds[1])
-        u = [t + self.kp * e + i for t, e, i in zip(targets, errors, self.integral, strict=True)]
+        u, saturated = self._limit(
+            [t + self.kp * e + i for t, e, i in zip(targets, errors, self.integral, strict=True)], targets, pre_scaled)
+        if not freeze and dt_s > 0.0:
+            for k in (0, 1):
+                if held[k]:
+                    continue  # a stalled wheel: integrating its error only winds up
+                step = self.ki * errors[k] * dt_s
+                if saturated and (step > 0.0) == (targets[k] > 0.0):
+                    continue  # saturated: the integrator may only unwind
+                self.integral[k] = max(-self.i_max[k], min(self.i_max[k], self.integral[k] + step))
+        self._learnt_at = list(targets)
+        return LoopResult(WheelSpeeds(u[0], u[1]), saturated, True)
+
+    def _hold(self, targets: tuple[float, float], follow: float, pre_scaled: bool, fresh: bool) -> LoopResult:
+        """No current measurement: the target plus the integrator's correction, scaled with the target
+        against the one it was learnt at (up to 1: never more than it was; negative for a reversed target)."""
+        u = []
+        for k in (0, 1):
+            learnt = self._learnt_at[k]
+            ratio = max(-1.0, min(1.0, targets[k] / learnt)) if learnt != 0.0 else 0.0
+            u.append(targets[k] + self.integral[k] * ratio)
+        if self.reference is not None:  # keeps following the target: no error piles up for the return
+            for k in (0, 1):
+                self.reference[k] += follow * (targets[k] - self.reference[k])
+        self._still_since = [None, None]
+        command, saturated = self._limit(u, targets, pre_scaled)
+        return LoopResult(WheelSpeeds(command[0], command[1]), saturated, fresh)
+
+    def _limit(self, u: list[float], targets: tuple[float, float], pre_scaled: bool) -> tuple[list[float], bool]:
+        """Never the other direction; both wheels scaled by one factor into their ranges (the curvature kept)."""
         for k in (0, 1):
             if targets[k] == 0.0 or (u[k] > 0.0) != (targets[k] > 0.0):
                 u[k] = 0.0  # never the other direction: no reverse kick
@@ -154,18 +210,9 @@ class WheelSpeedLoop:
                 scale = min(scale, hi / u[k])
             elif u[k] < lo:
                 scale = min(scale, lo / u[k])
-        saturated = pre_scaled or scale < 1.0
         if scale < 1.0:
             u = [x * scale for x in u]
-        if not freeze and dt_s > 0.0:
-            for k in (0, 1):
-                if held[k]:
-                    continue  # a stalled wheel: integrating its error only winds up
-                step = self.ki * errors[k] * dt_s
-                if saturated and (step > 0.0) == (targets[k] > 0.0):
-                    continue  # saturated: the integrator may only unwind
-                self.integral[k] = max(-self.i_max[k], min(self.i_max[k], self.integral[k] + step))
-        return LoopResult(WheelSpeeds(u[0], u[1]), saturated, True)
+        return u, pre_scaled or scale < 1.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -77,6 +77,18 @@ class EstimateState:
     reset_counter: int
 
 
+@dataclass(frozen=True, slots=True)
+class CalibrationEstimate:
+    """The filter's geometry against the profile's (WheelGyroEKF.calibration()), 1 sigma each; without
+    estimator.calibrate the nominal values and their prior sigma (`estimated` False)."""
+
+    track_scale: float  # effective track width / the profile's
+    track_scale_sigma: float
+    radius_ratio: float  # effective right wheel scale / left, relative to the profile's radii
+    radius_ratio_sigma: float
+    estimated: bool
+
+
 class EstimateCore:
     """Wheel odometry + gyro EKF -> ODOMETRY; stream requests; pose resets. See the module docstring."""
 
@@ -212,6 +224,11 @@ class EstimateCore:
             left_radius_m=robot.left_radius_m * 2.0 / (1.0 + q),
             right_radius_m=robot.right_radius_m * 2.0 * q / (1.0 + q),
             reset_counter=self.resets.value)
+
+    def calibration_estimate(self) -> CalibrationEstimate:
+        """Track scale and radius ratio as the filter has them now, with their uncertainty."""
+        kt, kt_sigma, q, q_sigma = self.ekf.calibration()
+        return CalibrationEstimate(kt, kt_sigma, q, q_sigma, self.profile.estimator.calibrate)
 
     # ------------------------------------------------------------------ navigation (PoseSource)
     def nav_pose(self, now_s: float) -> Pose2D | None:

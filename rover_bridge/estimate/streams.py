@@ -54,6 +54,7 @@ class Stream:
     rate_hz: float | None = None  # None: the requests' common rate ([estimator] stream_rate_hz)
     check_rate: bool = True  # False for a stream the autopilot may rightly not send (no position yet)
     if_missing: bool = False  # watched first, asked for only if it does not come (module doc)
+    wanted: bool = True  # False: not asked for until `want` (a stream needed only from some moment on)
 
 
 class StreamRequests:
@@ -67,6 +68,20 @@ class StreamRequests:
         self.counters = {"stream_requests": 0, "stream_fallbacks": 0, "stream_slow": 0, "stream_restarts": 0}
         self._last_hb_s: float | None = None
         self._last_restart_s = -math.inf
+
+    def add(self, stream: Stream) -> None:
+        """One more message to ask for, with the same fallbacks (the composition's, for the command flow)."""
+        self.streams.append(stream)
+
+    def want(self, name: str, now_s: float) -> list[Outgoing]:
+        """Start asking for a stream added unwanted; from then on it is asked for again after every restart."""
+        for s in self.streams:
+            if s.name == name and not s.wanted:
+                s.wanted = True
+                if self._last_hb_s is not None:
+                    s.state, s.attempts, s.window_start_s, s.arrivals = "queued", 0, None, 0
+                    return self.pump(now_s)
+        return []
 
     # ------------------------------------------------------------------ events
     def on_heartbeat(self, now_s: float) -> list[Outgoing]:
@@ -85,6 +100,8 @@ class StreamRequests:
         self._last_restart_s = now_s
         self.counters["stream_restarts"] += 1
         for s in self.streams:
+            if not s.wanted:
+                continue
             s.state, s.attempts, s.window_start_s, s.arrivals = "queued", 0, None, 0
             if s.if_missing:
                 s.state, s.window_start_s = "watching", now_s
@@ -152,7 +169,7 @@ class StreamRequests:
             if hz >= SLOW_FRACTION * wanted or not s.check_rate:
                 continue
             self.counters["stream_slow"] += 1
-            out.append(self._data_stream_request(s.group))  # ask again: a GCS may have lowered the group
+            out.append(self._data_stream_request(s.group, s.rate_hz))  # ask again: a GCS may have lowered it
             if now_s - s.last_slow_report_s >= SLOW_REPORT_INTERVAL_S:
                 s.last_slow_report_s = now_s
                 out += self.reporter.statustext(

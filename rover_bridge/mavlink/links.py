@@ -8,6 +8,8 @@ runner waits on the file descriptors with select() and then reads the readable l
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import logging
 import socket
 import struct
@@ -15,7 +17,7 @@ import sys
 import time
 from typing import Any
 
-from rover_bridge.errors import ConfigError
+from rover_bridge.errors import ConfigError, LinkError
 from rover_bridge.mavlink import fastcodec
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink, mavutil
 from rover_bridge.mavlink.framing import Framer, crc_ok, msg_id
@@ -72,6 +74,48 @@ def check_url(url: str) -> str | None:
             "tcpin:HOST:PORT or /dev/ttyXXX,BAUD)")
 
 
+def open_problem(url: str, role: Link, exc: BaseException) -> str:
+    """One line for a link that did not open: which link, what happened, what to check."""
+    what, flag = ("autopilot", "--autopilot") if role is Link.AUTOPILOT else ("ground-station", "--gcs")
+    head = f"cannot open the {what} link {url}"
+    code = getattr(exc, "errno", None)
+    if isinstance(exc, ImportError):
+        return f"{head}: serial links need pyserial (pip install pyserial)"
+    if isinstance(exc, ConnectionRefusedError):
+        return (f"{head}: connection refused, nothing listens there: start the autopilot (or SITL, or the router) "
+                f"first, or give its address with {flag}")
+    if isinstance(exc, socket.gaierror):
+        return f"{head}: unknown host: check the address given with {flag}"
+    if code == errno.EADDRINUSE:
+        return (f"{head}: the address is in use: another program (MAVProxy, QGroundControl, another rover-bridge) "
+                f"listens there: stop it, or choose another port with {flag}")
+    if code == errno.EADDRNOTAVAIL:
+        return f"{head}: not an address of this machine: listen on 0.0.0.0 or on one of its addresses"
+    if code == errno.ENOENT:
+        device = "autopilot" if role is Link.AUTOPILOT else "radio"
+        return (f"{head}: no such device: is the {device} plugged in and powered, and is the name right? "
+                "(ls /dev/serial/by-id/)")
+    if code in (errno.EBUSY, errno.EAGAIN):
+        return (f"{head}: the device is busy: another program holds it (MAVProxy, ModemManager, another "
+                "rover-bridge): stop it")
+    if code == errno.EACCES:
+        return (f"{head}: permission denied: add this user to the dialout group (sudo usermod -aG dialout $USER, "
+                "then log in again)")
+    return f"{head}: {getattr(exc, 'strerror', None) or exc}"
+
+
+def _probe_listen(address: str) -> None:
+    """Bind HOST:PORT for a moment without SO_REUSEADDR: pymavlink binds a listening UDP link with it, and on
+    Linux that shares the port silently with any other program that set it too (each then sees part of the
+    traffic). The probe fails with EADDRINUSE if anyone else holds the port."""
+    host, _, port = address.rpartition(":")
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.bind((host, int(port)))
+    finally:
+        probe.close()
+
+
 class Endpoint:
     """One MAVLink link: non-blocking reads of decoded frames, raw forwarding, packing with given ids."""
 
@@ -90,11 +134,19 @@ class Endpoint:
         else:
             device = url
         try:
+            if url.startswith(("udpin:", "udp:")):
+                _probe_listen(url.split(":", 1)[1])
+            # retries=0: one connection attempt, so a TCP autopilot that is not listening is one clear line
+            # (open_problem) at once, not pymavlink's "[Errno 111] Connection refused sleeping" for seconds.
             self.conn: Any = mavutil.mavlink_connection(
                 device, baud=baud, source_system=source_system, source_component=source_component,
-                dialect="ardupilotmega", autoreconnect=True, robust_parsing=True)
-        except OSError as exc:
-            raise ConfigError([f"{self.url}: cannot open ({exc.strerror or exc})"]) from exc
+                dialect="ardupilotmega", autoreconnect=True, robust_parsing=True, retries=0)
+            if isinstance(self.conn, mavutil.mavtcp):
+                self.conn.retries = 3  # once connected, a lost TCP link is retried as pymavlink does by default
+            if isinstance(self.conn, mavutil.mavserial) and self.conn.fd is not None:
+                self._lock_serial()
+        except (OSError, ImportError) as exc:
+            raise LinkError(open_problem(self.url, role, exc)) from exc
         if self.conn.WIRE_PROTOCOL_VERSION != "2.0":  # pragma: no cover - guarded by rover_bridge.mavlink.dialect
             raise ConfigError([f"{self.url}: pymavlink did not select MAVLink 2"])
         port = getattr(self.conn, "port", None)
@@ -128,6 +180,15 @@ class Endpoint:
         self.rx_frames = 0
         self.rx_bad = 0
         self.tx_frames = 0
+
+    def _lock_serial(self) -> None:
+        """Hold the serial port exclusively (as pyserial's exclusive=True): a second bridge, or any program
+        that locks it too, is told the device is busy instead of both reading half of every frame."""
+        try:
+            fcntl.flock(self.conn.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self.conn.close()
+            raise
 
     @property
     def receive_stamped(self) -> bool:

@@ -18,6 +18,7 @@ from pathlib import Path
 from types import FrameType
 
 from rover_bridge.app.calibration import Calibration, CalibrationResult
+from rover_bridge.app.commands import add_params_argument
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.loop import RUN_BATCH, Runner
 from rover_bridge.command.core import CommandState
@@ -43,7 +44,7 @@ ABORT_STATES = {CommandState.LINK_LOST: "the autopilot's heartbeat was lost",
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--params", default="params/default.toml", help="robot profile (TOML); default %(default)s")
+    add_params_argument(parser)
     parser.add_argument("--autopilot", default="tcp:127.0.0.1:5760", help="autopilot link (default %(default)s)")
     parser.add_argument("--gcs", action="append", default=None, metavar="URL",
                         help="ground-station link to forward to, repeatable (default: none)")

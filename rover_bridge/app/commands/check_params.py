@@ -12,7 +12,8 @@ HELP = "validate a robot profile (TOML) and print it fully resolved"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", nargs="?", help="profile to check, e.g. params/default.toml")
+    parser.add_argument("file", nargs="?", metavar="PROFILE",
+                        help="profile to check: a TOML file or a packaged profile's name (e.g. default)")
     parser.add_argument("--table", action="store_true",
                         help="print the parameter reference as a Markdown table (the README's) and exit")
 

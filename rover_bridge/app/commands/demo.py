@@ -12,20 +12,23 @@ HELP = ("start the sitl emulator and the bridge as separate processes on UDP loo
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from rover_bridge.app.demo import SCENARIOS
+    from rover_bridge.app.demo import SCENARIO_HELP, SCENARIOS
 
-    parser.add_argument("--scenario", default="clean", choices=sorted(SCENARIOS),
-                        help="conditions: clean, miscalibrated (2 %% radius / 3 %% track error), slip, gyro-bias")
-    parser.add_argument("--plot", default="demo.png", metavar="PATH",
-                        help="write the map and error plot here (default %(default)s); 'none' to skip")
+    parser.add_argument("--scenario", default="clean", choices=list(SCENARIOS),
+                        help="; ".join(f"{name}: {SCENARIO_HELP[name]}" for name in SCENARIOS)
+                        + " (default %(default)s)")
+    parser.add_argument("--plot", default=None, metavar="PATH",
+                        help="write the map and error plots here (default demo.png for the clean route, "
+                             "demo-SCENARIO.png for another); 'none' for no picture")
     parser.add_argument("--quick", action="store_true", help="a shorter route (about 20 s), for tests")
     parser.add_argument("--seed", type=int, default=1, help="emulator noise seed (default %(default)s)")
 
 
 def main(args: argparse.Namespace) -> int:
-    from rover_bridge.app.demo import run_demo
+    from rover_bridge.app.demo import picture_name, run_demo
 
-    plot_path = None if args.plot.lower() == "none" else Path(args.plot)
+    plot = picture_name(args.scenario) if args.plot is None else args.plot
+    plot_path = None if plot.lower() == "none" else Path(plot)
     try:
         summary = run_demo(args.scenario, 0.45 if args.quick else 1.0, args.seed, plot_path)
     except KeyboardInterrupt:

@@ -12,6 +12,7 @@ import argparse
 import math
 from dataclasses import dataclass
 
+from rover_bridge.app.commands import add_params_argument
 from rover_bridge.errors import ConfigError
 from rover_bridge.kinematics import DiffDrive, Twist2D, WheelSpeeds, rad_s_to_rpm
 from rover_bridge.params import Profile, load_profile
@@ -21,8 +22,7 @@ HELP = "print the wheel speeds (rad/s, RPM) for a grid of (v, omega) requests, o
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--params", required=True, metavar="FILE",
-                        help="robot profile, e.g. params/default.toml")
+    add_params_argument(parser, required=True)
     parser.add_argument("--v", type=float, default=None, metavar="M_S",
                         help="one forward speed request [m/s]")
     parser.add_argument("--omega", type=float, default=None, metavar="RAD_S",

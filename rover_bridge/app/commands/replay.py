@@ -1,19 +1,25 @@
-"""rover-bridge replay LOG.tlog: run the estimator offline over a recorded log."""
+"""rover-bridge replay LOG.tlog (or an ArduPilot DataFlash LOG.bin): run the estimator offline over a recorded log."""
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
+from rover_bridge.app.commands import add_params_argument
+
 NAME = "replay"
-HELP = "run the estimator over a recorded .tlog; write pose, velocity and covariance as CSV and print a summary"
+HELP = ("run the estimator over a recorded .tlog or DataFlash .bin; write pose, velocity, covariance and the "
+        "calibration as CSV and print a summary")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", help="a .tlog recorded by `rover-bridge run --tlog` (or MAVProxy)")
-    parser.add_argument("--params", default="params/default.toml", help="robot profile (default %(default)s)")
+    parser.add_argument("log", help="a .tlog recorded by `rover-bridge run --tlog` (or a ground station), or an "
+                                    "ArduPilot DataFlash .bin with wheel encoders (WENC)")
+    add_params_argument(parser)
     parser.add_argument("--csv", default=None, metavar="PATH", help="output CSV (default: LOG with .csv)")
-    parser.add_argument("--plot", default=None, metavar="PATH", help="also draw the replayed path (needs matplotlib)")
+    parser.add_argument("--plot", default=None, metavar="PATH",
+                        help="also draw the replayed path here (needs matplotlib); 'none' (the default): no picture")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -25,8 +31,10 @@ def main(args: argparse.Namespace) -> int:
     csv_path = Path(args.csv) if args.csv else Path(args.log).with_suffix(".csv")
     write_csv(result.rows, csv_path)
     print(result.summary())
+    if result.log.trailing_bytes:
+        print(f"rover-bridge replay: {args.log} ends mid-frame: it was cut short", file=sys.stderr)
     print(f"csv: {csv_path} ({len(result.rows)} rows)")
-    if args.plot:
+    if args.plot and args.plot.lower() != "none":
         try:
             import matplotlib
 

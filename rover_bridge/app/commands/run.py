@@ -18,11 +18,12 @@ import time
 from dataclasses import replace
 from types import FrameType
 
+from rover_bridge.app.commands import add_params_argument
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.guard import StopGuard
 from rover_bridge.app.loop import Runner, TlogWriter
 from rover_bridge.app.systemd import SystemdNotifier
-from rover_bridge.command.core import EMERGENCY_PROBE_TS1
+from rover_bridge.command.core import EMERGENCY_PROBE_TS1, CommandState
 from rover_bridge.errors import ConfigError
 from rover_bridge.mavlink.links import Endpoint, check_url
 from rover_bridge.mavlink.signing import SignatureVerifier, load_key, signing_timestamp
@@ -38,8 +39,25 @@ DEFAULT_AUTOPILOT = "tcp:127.0.0.1:5760"
 DEFAULT_GCS = "udpout:127.0.0.1:14550"
 
 
+# With no autopilot HEARTBEAT this long after the start, say so once (a udpout or serial link opens whether or
+# not anything is there).
+NO_AUTOPILOT_S = 5.0
+
+
+def silent_autopilot_hint(url: str) -> str:
+    """What to check when a link opened but the autopilot says nothing."""
+    if url.startswith("udpout:"):
+        return "is it running and listening at that address (e.g. SITL's or mavlink-router's udpin)?"
+    if url.startswith(("udpin:", "udp:")):
+        return "is it running and sending to this port (mavlink-router endpoint, SERIALn_PROTOCOL 2 on a radio)?"
+    if url.startswith(("tcp:", "tcpin:")):
+        return "the connection is up but nothing speaks MAVLink on it: is this the autopilot's MAVLink port?"
+    return ("check the wiring (TX to RX), the baud rate after the comma, and that the autopilot's port speaks "
+            "MAVLink 2 (SERIALn_PROTOCOL = 2, SERIALn_BAUD to match)")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--params", default="params/default.toml", help="robot profile (TOML); default %(default)s")
+    add_params_argument(parser)
     parser.add_argument("--autopilot", default=DEFAULT_AUTOPILOT,
                         help="autopilot link: /dev/ttyAMA0,921600 on a rover, tcp:127.0.0.1:5760 for ArduPilot SITL "
                              "(default %(default)s)")
@@ -104,6 +122,7 @@ def main(args: argparse.Namespace) -> int:
     notifier = SystemdNotifier()
 
     started: list[bool] = []
+    told_silent: list[bool] = []
 
     def on_pass(now_s: float) -> None:
         if not started:
@@ -117,11 +136,15 @@ def main(args: argparse.Namespace) -> int:
         guard.passed(now_s)
         guard.frames = runner.emergency_frames
         notifier.ping(now_s)
+        if not told_silent and core.command.state is CommandState.WAITING and now_s - start >= NO_AUTOPILOT_S:
+            told_silent.append(True)
+            log.warning("no HEARTBEAT from the autopilot on %s after %.0f s: %s", args.autopilot, NO_AUTOPILOT_S,
+                        silent_autopilot_hint(args.autopilot))
 
     start = time.monotonic()
     end = None if args.duration is None else start + args.duration
-    log.warning("rover-bridge running: autopilot %s, gcs %s, profile %s", args.autopilot,
-                ", ".join(gcs_urls) or "none", args.params)
+    log.info("rover-bridge running: autopilot %s, gcs %s, profile %s", args.autopilot,
+             ", ".join(gcs_urls) or "none", args.params)
     code = 0
     confirmed: bool | None = None
     try:
@@ -151,7 +174,8 @@ def main(args: argparse.Namespace) -> int:
         how = {True: "confirmed by the autopilot", False: "NOT confirmed by the autopilot",
                None: "no vehicle was known"}[confirmed]
         what = "neutral and release" if profile.output.mode == "rc_override" else "trim on both outputs"
-        log.warning("stopped by signal %d: %s sent, %s", stop_requested[0], what, how)
+        log.log(logging.INFO if confirmed is not False else logging.WARNING, "stopped by signal %d: %s sent, %s",
+                stop_requested[0], what, how)
     return code
 
 
@@ -165,6 +189,7 @@ def write_stats(path: str, runner: Runner, verifier: SignatureVerifier | None = 
                    "early_ticks": runner.early_ticks, "pack_errors": runner.pack_errors,
                    "passes": runner.passes},
         "links": {ep.url: {"rx": ep.rx_frames, "rx_bad": ep.rx_bad, "tx": ep.tx_frames} for ep in runner.endpoints},
+        "timing": runner.timing.stats(),
         "statustext_suppressed": dict(core.reporter.limiter.suppressed),
         "security": dict(core.gate.counters),
         "signatures": dict(verifier.counters) if verifier is not None else {},
