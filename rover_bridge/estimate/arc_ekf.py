@@ -18,8 +18,8 @@ running bridge (measured, cold caches: 240 us of a 750 us cycle, against 60 us f
 update with the closed-form inverse below; notes in the module's commit). KalmanFilter takes its
 inverse as a parameter (`inv`).
 
-filterpy >= 1.4.5: KalmanFilter's predict, update and `inv` are the same in 1.4.5 and 2.0, but for 1.4
-reshaping z to dim_z even when H is given: dim_z is set to the update's rows.
+KalmanFilter reshapes z to its dim_z before an update (1.4.5 even when H is given): dim_z is set to the
+update's rows each time.
 """
 
 # Kalman-filter notation (F, H, Q, R, S) reads better than pep8 names here.

@@ -80,7 +80,7 @@ class EstimateState:
 @dataclass(frozen=True, slots=True)
 class CalibrationEstimate:
     """The filter's geometry against the profile's (WheelGyroEKF.calibration()), 1 sigma each; without
-    estimator.calibrate the nominal values and their prior sigma (`estimated` False)."""
+    estimator.calibrate the nominal values with sigma 0, the profile's taken as exact (`estimated` False)."""
 
     track_scale: float  # effective track width / the profile's
     track_scale_sigma: float

@@ -9,6 +9,9 @@ linearised at the state). Around it, what a filter needs in a sampled, imperfect
   with the next measurement, so no time is lost).
 - A gyro sample and a wheel reading of the same instant (ArduPilot sends ATTITUDE and WHEEL_DISTANCE
   in one burst, with one stamp) are one update of three rows: the gyro's waits for the next call.
+  filterpy's update takes any rows it is given, but it is called per measurement and cannot know
+  that the wheel reading of the gyro's instant is next: that wait (_pending_gyro) is the one piece
+  of scheduling kept here.
 - Gating, per sensor, on the innovation against the predicted state: further than gate_sigma
   (Mahalanobis), its rows are left out; MAX_CONSECUTIVE_REJECTS in a row are taken (the filter is
   then the likelier culprit). The wheels' heading row is never refused: a jump in it is a lost

@@ -28,7 +28,7 @@ state itself (slip: see ekf.py) take the difference, and the gyro holds the head
 bias is learnt wherever the wheels are trusted: at rest, driving straight and turning.
 
 Every model is a pure function of the state (and dt, the track) so tests can check the Jacobians by
-finite differences; filterpy's ExtendedKalmanFilter runs them (arc_ekf.py, ekf.py).
+finite differences; filterpy's KalmanFilter runs them, linearised at the state (arc_ekf.py, ekf.py).
 """
 
 # Kalman-filter notation (F, H, Q, R) reads better than pep8 names here.
