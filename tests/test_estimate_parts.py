@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rover_bridge.estimate.clock import CLOCK_DRIFT, JUMP, REBOOT, AutopilotClock, Stamp
+from rover_bridge.estimate.clock import CLOCK_DRIFT, JUMP, LATENCY_WINDOW_S, REBOOT, AutopilotClock, Stamp
 from rover_bridge.estimate.diagnostics import (
     SLIP_MIN_INTERVALS,
     SLIP_REPORT_INTERVAL_S,
@@ -56,6 +56,30 @@ def test_clock_offset_creeps_up_at_most_at_the_drift_rate() -> None:
     clock.observe(0.0, 100.0)  # offset 100
     clock.observe(9.0, 110.0)  # latency 101 s: the clock runs slow; the offset may rise 0.05 s/s
     assert clock.offset_s == pytest.approx(100.0 + CLOCK_DRIFT * 10.0)
+
+
+def test_clock_follows_an_autopilot_clock_that_fell_behind_within_two_windows() -> None:
+    # A starved SITL re-bases its clock: every stamp from then on arrives 0.75 s later than before. Creeping
+    # at CLOCK_DRIFT the offset would take 15 s; a whole window's smallest latency above it moves it at once.
+    clock = AutopilotClock()
+    now = 100.0
+    for _ in range(100):  # 2 s of 50 Hz stamps, 5 to 15 ms late
+        now += 0.02
+        clock.observe(now - 100.0 - 0.005 - 0.01 * (round(now * 50) % 2), now)
+    assert clock.offset_s == pytest.approx(100.005)
+    followed_at = None
+    for k in range(150):
+        now += 0.02
+        clock.observe(now - 100.0 - 0.755 - 0.01 * (k % 2), now)
+        if followed_at is None and clock.offset_s > 100.7:
+            followed_at = k * 0.02
+    assert followed_at is not None and followed_at <= 2.0 * LATENCY_WINDOW_S + 0.05
+    assert clock.offset_s == pytest.approx(100.755, abs=2e-3)
+    # jitter within STEP_S never moves it up at once: only the creep
+    quiet = AutopilotClock()
+    for k in range(300):
+        quiet.observe(k * 0.02, 100.0 + k * 0.02 + (0.0 if k % 10 == 0 else 0.09))
+    assert quiet.offset_s < 100.0 + CLOCK_DRIFT * 0.3  # at most the creep since the last 0-latency stamp
 
 
 def test_clock_restarted_by_stamps_jumping_back() -> None:
