@@ -82,6 +82,7 @@ class WheelJudge:
         self._still_since_s: float | None = None  # start of the current standstill
         self.window = ConsistencyWindow()
         self.trusted = True  # the wheels' heading: trusted, or free while they disagree with the gyro
+        self.agreed = False  # the last interval completed agreeing windows (what the filter learnt is sound)
         self._may_trust = True  # a standstill since the last disagreement
         self._prev: tuple[float, float, float] | None = None  # the last interval's (mean speed, variance, dt)
         self.accel_m_s2 = 0.0  # from the last two intervals' mean speeds (publishing extrapolates with it)
@@ -96,6 +97,7 @@ class WheelJudge:
     def judge(self, t_s: float, w: WheelInterval, x: Vec, P: Mat) -> WheelJudgement:
         """The interval ending at t_s against the state (x, P) predicted to t_s."""
         L = self.track_width_m
+        self.agreed = False
         if w.d_left_m == 0.0 and w.d_right_m == 0.0:
             if self._still_since_s is None:
                 self._still_since_s = t_s - w.dt_s
@@ -191,5 +193,6 @@ class WheelJudge:
         agree = self.window.agree(float(P[IB, IB]), self._reading_var)
         if agree is False:
             self.trusted = self._may_trust = False
-        elif agree and self._may_trust:
-            self.trusted = True
+        elif agree:
+            self.agreed = True
+            self.trusted = self.trusted or self._may_trust
