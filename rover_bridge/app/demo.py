@@ -318,7 +318,9 @@ class Demo:
         ap_port, gcs_port = free_udp_port(), free_udp_port()
         vehicle_toml, scenario_toml = SCENARIOS[self.scenario]
         vehicle = tmp / "vehicle.toml"
-        vehicle.write_text(vehicle_toml)
+        # SCHED_LOOP_RATE 100: the bridge's 50 Hz WHEEL_DISTANCE and ATTITUDE are granted (Rover's default 50
+        # caps every stream at 40 Hz, and deploy/ardupilot-rover.parm says so).
+        vehicle.write_text(vehicle_toml + "[params]\nSCHED_LOOP_RATE = 100\n")
         profile = tmp / "profile.toml"
         profile.write_text('[odometry]\ntargets = "gcs"\n')
         sitl_cmd = [sys.executable, "-m", "sitl", "--connect", f"udpin:127.0.0.1:{ap_port}", "--seed",
