@@ -474,3 +474,24 @@ def test_the_geometry_is_exact_without_calibration_and_learnt_with_it() -> None:
     assert WheelGyroEKF(L).calibration() == (1.0, 0.0, 1.0, 0.0)
     kt, s_kt, q, s_q = WheelGyroEKF(L, calibrate=True).calibration()
     assert (kt, q) == (1.0, 1.0) and s_kt > 0.0 and s_q > 0.0
+
+
+def test_a_bias_taught_by_wheels_that_then_disagree_is_unlearnt() -> None:
+    # Driving off at once (no standstill) straight on a right wheel 2 % large: the wheels read a turn the gyro
+    # does not see. Trusted at first, they teach the gyro a bias; as the speed rises (a bias would not grow
+    # with it) the window finds them disagreeing before it ever agreed: that bias was theirs, not the gyro's:
+    # back to the prior (the last sound value), and it stays there.
+    ekf = WheelGyroEKF(L)
+    t, dt = 0.0, 0.02
+    learnt = 0.0
+    for _ in range(150):
+        v = 0.2 + 0.8 * min(1.0, t / 1.5)
+        t += dt
+        ekf.update_gyro(t, 0.0)
+        ekf.update_wheels(t, v * dt, 1.02 * v * dt, dt, gyro_omega_rad_s=0.0)
+        if ekf.wheels_trusted:
+            learnt = min(learnt, float(ekf.x[IB]))
+    assert learnt < -0.005  # what the disagreeing wheels had taught it
+    assert not ekf.wheels_trusted
+    assert abs(float(ekf.x[IB])) < 0.001
+    assert ekf.P[IB, IB] == pytest.approx(0.03 ** 2, rel=0.01)
