@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -364,3 +365,17 @@ def test_odometry_covariances_are_the_general_constructions(seed: int, anchored:
     assert got == pytest.approx(pose + vel, rel=1e-12, abs=1e-12)
     if anchor is None:  # bit for bit, the signs of the zeros included
         assert [math.copysign(1.0, v) for v in got] == [math.copysign(1.0, v) for v in pose + vel]
+
+
+def test_no_class_in_rover_bridge_is_over_300_lines() -> None:
+    # The estimate core only wires; each behaviour is a small class (issue 30: none in estimate/ over 300 lines).
+    import ast
+
+    root = Path(__file__).resolve().parents[1] / "rover_bridge"
+    sizes = {}
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                sizes[f"{path.relative_to(root)}:{node.name}"] = (node.end_lineno or node.lineno) - node.lineno + 1
+    assert "estimate/core.py:EstimateCore" in sizes and "estimate/ekf.py:WheelGyroEKF" in sizes
+    assert {name: n for name, n in sizes.items() if n > 300} == {}
