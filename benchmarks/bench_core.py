@@ -51,7 +51,7 @@ def ekf_rows() -> Iterator[tuple[str, tuple[float, float]]]:
         def extrapolate(ekf: WheelGyroEKF = ekf, t: list[float] = clock) -> object:
             return ekf.extrapolate(t[0] + 0.01)
 
-        tag = "calibrate" if calibrate else "consider"
+        tag = "calibrate" if calibrate else "geometry exact"
         yield from [(f"EKF ({tag}): update_gyro", bench(gyro)), (f"EKF ({tag}): update_wheels", bench(wheels)),
                     (f"EKF ({tag}): extrapolate", bench(extrapolate))]
     profile = Profile()

@@ -357,7 +357,8 @@ class Autopilot:
     def interval_us(self, msg_id: int) -> int | None:
         """Current interval of a stream (None = off)."""
         group = GROUP_OF_MESSAGE.get(msg_id)
-        return self.streams.interval_us(msg_id, self.param(STREAM_GROUPS[group][0]) if group is not None else None)
+        return self.streams.interval_us(msg_id, self.param(STREAM_GROUPS[group][0]) if group is not None else None,
+                                        self.rover.loop_period_us)
 
     def start_reboot(self, now_us: int) -> None:
         self.booting_until_us = now_us + round(self.vehicle.reboot_silence_s * 1e6)

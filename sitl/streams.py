@@ -12,6 +12,8 @@ GCS_Common.cpp (set_message_interval, cap_message_interval, handle_command_reque
   one shorter than 1.25 loop periods (interval_ms * 800 < loop period in us: 25 ms at
   SCHED_LOOP_RATE 50) is DENIED with "Requested rate for message ID N too fast. Increase
   SCHED_LOOP_RATE". A message with no internal mapping: DENIED, "No ap_message for mavlink id (N)".
+- A group's rate (REQUEST_DATA_STREAM, SRn_) is capped instead (cap_message_interval): at most 0.8 x
+  SCHED_LOOP_RATE, 40 Hz at SCHED_LOOP_RATE 50.
 - Intervals live in RAM: a reboot forgets them (SRn_ parameters persist). Sending keeps the average
   rate (the next time is the last due time plus the interval) and skips, rather than bursts, when late.
 """
@@ -67,8 +69,9 @@ class Streams:
         self.next_due_us.clear()
         self.pending.clear()
 
-    def interval_us(self, msg_id: int, group_hz: float | None) -> int | None:
-        """Current interval of a message (None = off); ``group_hz`` is its group's SRn_ rate."""
+    def interval_us(self, msg_id: int, group_hz: float | None, loop_period_us: int = 0) -> int | None:
+        """Current interval of a message (None = off); ``group_hz`` is its group's SRn_ rate, capped, as every
+        interval is, at 0.8 x SCHED_LOOP_RATE (40 Hz at 50: a 50 Hz REQUEST_DATA_STREAM streams at 40 Hz)."""
         override = self.intervals_us.get(msg_id)
         if override is not None:
             return None if override < 0 else override
@@ -76,7 +79,10 @@ class Streams:
             return 1_000_000
         if group_hz is None or group_hz <= 0:
             return None
-        return round(1e6 / group_hz)
+        interval = round(1e6 / group_hz)
+        if interval * 0.8 < loop_period_us:
+            return int(loop_period_us / 800) * 1000  # whole milliseconds, as ArduPilot keeps intervals
+        return interval
 
     def reset_group(self, group: int, now_us: int) -> None:
         """REQUEST_DATA_STREAM / an SRn_ change: the group's own intervals go, the new rate starts at once."""

@@ -138,11 +138,12 @@ def _alive(pid: int) -> bool:
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
-def test_the_demo_stamps_the_true_yaw_by_arrival_not_by_the_last_position() -> None:
-    # SIMSTATE has no time field; when its stream runs on another phase than LOCAL_POSITION_NED's (the
-    # bridge re-requests the EXTRA1 group), pairing it with the last position stamp made a spinning
-    # rover's true yaw up to a period late. A spin at 1.5 rad/s, positions at 20 Hz on the boot clock,
-    # SIMSTATE 25 ms out of phase; arrivals 1 ms after the send.
+def test_the_demo_stamps_the_true_yaw_with_the_wheel_reading_of_its_step_whenever_it_is_read() -> None:
+    # SIMSTATE has no time field. The emulator sends it in the EXTRA1 group, right before the WHEEL_DISTANCE
+    # of the same step, so that reading's time_usec is its time. Stamping it by its arrival made it as late
+    # as the demo read it (a busy machine: a third of a second, 30 deg of a spin); pairing it with the last
+    # position stamp (another phase) up to a period late. A spin at 1.5 rad/s, positions at 20 Hz, the EXTRA1
+    # step 25 ms out of their phase; the demo reads nothing for 0.3 s twice (no arrival time is used).
     from rover_bridge.app.demo import Demo, errors_over_time
     from rover_bridge.mavlink.dialect import mavlink
     from rover_bridge.odometry import WheelOdometry
@@ -152,13 +153,12 @@ def test_the_demo_stamps_the_true_yaw_by_arrival_not_by_the_last_position() -> N
     rate = 1.5
     for k in range(40):
         t = 10.0 + 0.05 * k
-        demo._collect(mavlink.MAVLink_local_position_ned_message(round(t * 1000), 0, 0, 0, 0, 0, 0), wheel,
-                      arrival_s=t + 100.001)
+        demo._collect(mavlink.MAVLink_local_position_ned_message(round(t * 1000), 0, 0, 0, 0, 0, 0), wheel)
         ts = t + 0.025
-        demo._collect(mavlink.MAVLink_simstate_message(0, 0, rate * ts, 0, 0, 0, 0, 0, 0, 0, 0), wheel,
-                      arrival_s=ts + 100.001)
+        demo._collect(mavlink.MAVLink_simstate_message(0, 0, rate * ts, 0, 0, 0, 0, 0, 0, 0, 0), wheel)
+        demo._collect(mavlink.MAVLink_wheel_distance_message(round(ts * 1e6), 2, [0.0] * 16), wheel)
         demo.series.ekf.append((t, 0.0, 0.0, rate * t))  # an estimate exactly right at its stamps
-        demo.series.wheel.append((t, 0.0, 0.0, rate * t))
+    demo.series.wheel = [(t, 0.0, 0.0, rate * t) for t, _ in demo.series.truth_yaw]
     errs = errors_over_time(demo.series)
     assert len(errs) > 30
-    assert max(e[4] for e in errs) < 0.05  # degrees; pairing with the last stamp gave 2.1 deg
+    assert max(e[4] for e in errs) < 0.05  # degrees; pairing with the last position stamp gave 2.1 deg

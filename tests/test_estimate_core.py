@@ -24,6 +24,8 @@ L = 0.30
 
 
 def _core(**sections: dict[str, Any]) -> EstimateCore:
+    # The drives here send at 20 Hz: that is the rate these tests ask for unless they say otherwise.
+    sections = {**sections, "estimator": {"stream_rate_hz": 20.0, **sections.get("estimator", {})}}
     profile: Profile = profile_from_dict(sections)
     identity = Identity.from_profile(profile)
     return EstimateCore(profile, identity, Reporter(identity))
@@ -403,8 +405,11 @@ def test_ekf_heading_error_at_least_3x_smaller_than_raw_wheel_odometry() -> None
 
 def test_calibration_moves_the_track_width_toward_the_truth() -> None:
     _, _, core, _ = _run(MISCALIBRATED, calibrate=True, seed=4)
+    # The wheels' mean scale is not observable without an absolute reference: the track the filter can see
+    # is the true one in units of the nominal radius, 1.03 / 1.01 of the profile's (radii 1.00 and 1.02).
+    seen = L * 1.03 / 1.01
     est = core.state.track_width_m
-    assert abs(est - L * 1.03) < 0.3 * abs(L - L * 1.03)  # 70 % of the 3 % error removed
+    assert abs(est - seen) < 0.3 * abs(L - seen)  # 70 % of that error removed
     ratio = core.state.right_radius_m / core.state.left_radius_m
     assert ratio == pytest.approx(1.02, abs=0.006)
 

@@ -4,21 +4,22 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rover_bridge.estimate.clock import CLOCK_DRIFT, JUMP, REBOOT, AutopilotClock, Stamp
+from rover_bridge.estimate.clock import CLOCK_DRIFT, JUMP, LATENCY_WINDOW_S, REBOOT, AutopilotClock, Stamp
 from rover_bridge.estimate.diagnostics import (
     SLIP_MIN_INTERVALS,
     SLIP_REPORT_INTERVAL_S,
     CalibrationReports,
     SlipMonitor,
 )
-from rover_bridge.estimate.ekf import IW, IX, IY, IYAW, N_CAL
 from rover_bridge.estimate.gyro import GYRO_SILENT_S, GyroSelector
+from rover_bridge.estimate.models import IW, IX, IY, IYAW, N_STATES
 from rover_bridge.estimate.publish import OdometryPublisher, quality, reference_covariances, sigma_xy
 from rover_bridge.estimate.resets import POSE_RESET_COMMAND, ResetCounter, requested_pose
 from rover_bridge.estimate.streams import (
@@ -56,6 +57,30 @@ def test_clock_offset_creeps_up_at_most_at_the_drift_rate() -> None:
     clock.observe(0.0, 100.0)  # offset 100
     clock.observe(9.0, 110.0)  # latency 101 s: the clock runs slow; the offset may rise 0.05 s/s
     assert clock.offset_s == pytest.approx(100.0 + CLOCK_DRIFT * 10.0)
+
+
+def test_clock_follows_an_autopilot_clock_that_fell_behind_within_two_windows() -> None:
+    # A starved SITL re-bases its clock: every stamp from then on arrives 0.75 s later than before. Creeping
+    # at CLOCK_DRIFT the offset would take 15 s; a whole window's smallest latency above it moves it at once.
+    clock = AutopilotClock()
+    now = 100.0
+    for _ in range(100):  # 2 s of 50 Hz stamps, 5 to 15 ms late
+        now += 0.02
+        clock.observe(now - 100.0 - 0.005 - 0.01 * (round(now * 50) % 2), now)
+    assert clock.offset_s == pytest.approx(100.005)
+    followed_at = None
+    for k in range(150):
+        now += 0.02
+        clock.observe(now - 100.0 - 0.755 - 0.01 * (k % 2), now)
+        if followed_at is None and clock.offset_s > 100.7:
+            followed_at = k * 0.02
+    assert followed_at is not None and followed_at <= 2.0 * LATENCY_WINDOW_S + 0.05
+    assert clock.offset_s == pytest.approx(100.755, abs=2e-3)
+    # jitter within STEP_S never moves it up at once: only the creep
+    quiet = AutopilotClock()
+    for k in range(300):
+        quiet.observe(k * 0.02, 100.0 + k * 0.02 + (0.0 if k % 10 == 0 else 0.09))
+    assert quiet.offset_s < 100.0 + CLOCK_DRIFT * 0.3  # at most the creep since the last 0-latency stamp
 
 
 def test_clock_restarted_by_stamps_jumping_back() -> None:
@@ -179,7 +204,7 @@ def test_gyro_fixed_source_and_stale_stamps() -> None:
 # ------------------------------------------------------------------------------------ publish
 
 def _state() -> tuple[np.ndarray, np.ndarray]:
-    x = np.zeros(N_CAL)
+    x = np.zeros(N_STATES)
     x[IX], x[IY], x[IYAW], x[IW] = 1.0, 2.0, 0.5, 0.3
     P = np.diag([0.01, 0.04, 0.001, 0.1, 0.2, 1e-4, 1e-3, 1e-3])  # noqa: N806
     return x, P
@@ -329,8 +354,8 @@ def test_odometry_covariances_are_the_general_constructions(seed: int, anchored:
     from rover_bridge.frames import LocalAnchor
 
     rng = np.random.default_rng(seed)
-    x = rng.normal(size=N_CAL)
-    a = rng.normal(size=(N_CAL, N_CAL))
+    x = rng.normal(size=N_STATES)
+    a = rng.normal(size=(N_STATES, N_STATES))
     P = a @ a.T  # noqa: N806
     anchor = LocalAnchor(1.5, -2.0, rotation) if anchored else None
     pub = OdometryPublisher(OdometryParams())
@@ -340,3 +365,17 @@ def test_odometry_covariances_are_the_general_constructions(seed: int, anchored:
     assert got == pytest.approx(pose + vel, rel=1e-12, abs=1e-12)
     if anchor is None:  # bit for bit, the signs of the zeros included
         assert [math.copysign(1.0, v) for v in got] == [math.copysign(1.0, v) for v in pose + vel]
+
+
+def test_no_class_in_rover_bridge_is_over_300_lines() -> None:
+    # The estimate core only wires; each behaviour is a small class (issue 30: none in estimate/ over 300 lines).
+    import ast
+
+    root = Path(__file__).resolve().parents[1] / "rover_bridge"
+    sizes = {}
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                sizes[f"{path.relative_to(root)}:{node.name}"] = (node.end_lineno or node.lineno) - node.lineno + 1
+    assert "estimate/core.py:EstimateCore" in sizes and "estimate/ekf.py:WheelGyroEKF" in sizes
+    assert {name: n for name, n in sizes.items() if n > 300} == {}

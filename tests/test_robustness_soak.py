@@ -55,7 +55,7 @@ def sizes(core: BridgeCore, emu: Emulator) -> dict[str, int]:
         "gate.reported": len(core.gate._reported),
         "gate.counters": len(core.gate.counters),
         "estimate.counters": len(est.counters),
-        "estimate.gyro_window": len(est._gyro_window),
+        "estimate.gyro_window": len(est.fusion.gyro_window),
         "estimate.gyro_sources": est.gyro.tracked_sources,
         "estimate.streams": len(est.streams.streams),
         "identity.seen": len(core.identity._seen),

@@ -86,6 +86,22 @@ def test_servo_output_raw_is_1_hz_until_asked_and_40_hz_is_the_fastest_at_loop_r
     assert 3 <= len(g.of("SERVO_OUTPUT_RAW")) - before <= 5
 
 
+def test_a_stream_group_faster_than_0_8_of_the_loop_rate_is_capped_not_refused() -> None:
+    # ArduPilot's set_ap_message_interval caps every interval, a group's too, at 0.8 x SCHED_LOOP_RATE
+    # (GCS_Common.cpp cap_message_interval): EXTRA1 asked at 50 Hz streams at 40 Hz at loop rate 50.
+    g = rig()
+    g.send(g.mav.request_data_stream_encode(1, 1, P.MAV_DATA_STREAM_EXTRA1, 50, 1))
+    g.run(1.0, dt_s=0.005)
+    before = len(g.of("ATTITUDE"))
+    g.run(4.0, dt_s=0.005)
+    assert 158 <= len(g.of("ATTITUDE")) - before <= 162
+    g.send(g.mav.request_data_stream_encode(1, 1, P.MAV_DATA_STREAM_EXTRA1, 25, 1))  # below the cap: as asked
+    g.run(1.0, dt_s=0.005)
+    before = len(g.of("ATTITUDE"))
+    g.run(4.0, dt_s=0.005)
+    assert 98 <= len(g.of("ATTITUDE")) - before <= 102
+
+
 def test_intervals_reset_on_reboot_and_a_faster_loop_takes_effect_after_one() -> None:
     g = rig()
     assert g.command(P.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 25_000) == P.MAV_RESULT_ACCEPTED

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import socket
@@ -371,11 +372,18 @@ def test_the_process_tells_systemd_it_is_ready_and_pings_while_it_runs(tmp_path:
     # Read as the messages come (as systemd does): the socket queues only net.unix.max_dgram_qlen of them.
     proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "run", "--params",
                              str(REPO / "params" / "default.toml"), "--autopilot", "udpout:127.0.0.1:9", "--gcs",
-                             "none", "--duration", "1.5"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                             "none", "--duration", "3.0"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     got: list[str] = []
+    ready_s = stopping_s = math.nan
     try:
         while proc.poll() is None:
-            got += _received(sock)
+            new = _received(sock)
+            now = time.monotonic()
+            if any(m.startswith("READY=1") for m in new):
+                ready_s = now
+            if "STOPPING=1" in new:
+                stopping_s = now
+            got += new
             time.sleep(0.01)
         got += _received(sock)
         stderr = proc.stderr.read() if proc.stderr else b""
@@ -385,7 +393,13 @@ def test_the_process_tells_systemd_it_is_ready_and_pings_while_it_runs(tmp_path:
             proc.stderr.close()
     assert proc.returncode == 0, stderr[-1000:]
     assert got[0].startswith("READY=1") and got[-1] == "STOPPING=1"
-    assert 10 <= got.count("WATCHDOG=1") <= 20  # every 0.1 s (a quarter of 0.4 s) for 1.5 s
+    # Every 0.1 s (a quarter of 0.4 s) from READY=1, which comes once the filter is built (it imports filterpy
+    # and scipy after the first pass: the ready time depends on the machine), to STOPPING=1.
+    if math.isnan(stopping_s):
+        stopping_s = time.monotonic()
+    expected = (stopping_s - ready_s) / 0.1
+    assert 0.5 * expected - 1 <= got.count("WATCHDOG=1") <= 1.5 * expected + 2
+    assert got.count("WATCHDOG=1") >= 3
 
 
 def test_the_shipped_unit_uses_the_watchdog_and_restarts_failures_but_not_bad_profiles() -> None:

@@ -127,10 +127,12 @@ class Series:
     """
 
     truth: list[tuple[float, float, float, float]] = field(default_factory=list)  # t, north, east, yaw_cw
-    # SIMSTATE (the true yaw) has no time field, and its stream's phase differs from LOCAL_POSITION_NED's
-    # whenever something re-requests the EXTRA1 group (the bridge does): pairing it with the last position
-    # stamp put it up to a period late (2 deg at the demo's spin rate). Its samples are stamped by arrival
-    # instead, mapped onto the boot clock through the smallest arrival latency of the stamped messages.
+    # SIMSTATE (the true yaw) has no time field. The emulator sends it in the EXTRA1 group, with
+    # WHEEL_DISTANCE in the same step right after it (the group runs in phase: the bridge asks for it, and
+    # the demo does not ask for SIMSTATE on its own), so it takes that WHEEL_DISTANCE's time_usec. Stamping
+    # it by its arrival (mapped through the smallest latency) put it as late as the demo read it: on a
+    # busy machine up to a third of a second, 30 deg of spin; pairing it with the last position's stamp,
+    # up to a period late.
     truth_yaw: list[tuple[float, float]] = field(default_factory=list)  # t, yaw_cw
     ekf: list[tuple[float, float, float, float]] = field(default_factory=list)  # t, x_fwd, y_right, yaw_cw
     wheel: list[tuple[float, float, float, float]] = field(default_factory=list)
@@ -303,7 +305,7 @@ class Demo:
         self.procs: list[subprocess.Popen[bytes]] = []
         self.series = Series()
         self._last_yaw = 0.0
-        self._arrival_offset_s: float | None = None  # smallest (arrival - boot stamp) seen
+        self._yaw_waiting: float | None = None  # a SIMSTATE yaw waiting for its step's WHEEL_DISTANCE
         self._last_progress_s = -1.0
         self._last_phase = ""
         self._fix: tuple[float, float, float, float] | None = None  # GLOBAL_POSITION_INT lat, lon at north, east
@@ -316,7 +318,9 @@ class Demo:
         ap_port, gcs_port = free_udp_port(), free_udp_port()
         vehicle_toml, scenario_toml = SCENARIOS[self.scenario]
         vehicle = tmp / "vehicle.toml"
-        vehicle.write_text(vehicle_toml)
+        # SCHED_LOOP_RATE 100: the bridge's 50 Hz WHEEL_DISTANCE and ATTITUDE are granted (Rover's default 50
+        # caps every stream at 40 Hz, and deploy/ardupilot-rover.parm says so).
+        vehicle.write_text(vehicle_toml + "[params]\nSCHED_LOOP_RATE = 100\n")
         profile = tmp / "profile.toml"
         profile.write_text('[odometry]\ntargets = "gcs"\n')
         sitl_cmd = [sys.executable, "-m", "sitl", "--connect", f"udpin:127.0.0.1:{ap_port}", "--seed",
@@ -411,10 +415,10 @@ class Demo:
                 continue
             if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1 and not seen_ap:
                 seen_ap = True
-                # Ground truth at 20 Hz from the emulator, asked for through the bridge like any GCS would.
-                for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_SIMSTATE):
-                    gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 50_000,
-                                              0, 0, 0, 0, 0)
+                # Ground truth at 20 Hz from the emulator, asked for through the bridge like any GCS would
+                # (the true yaw, SIMSTATE, comes with the bridge's WHEEL_DISTANCE: Series).
+                gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                          mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 50_000, 0, 0, 0, 0, 0)
             if msg.get_type() == "ODOMETRY":
                 seen_odom = True
             self._say(f"starting: autopilot {'up' if seen_ap else '...'}, bridge {'up' if seen_odom else '...'}",
@@ -517,17 +521,10 @@ class Demo:
         return (f"[{'#' * done}{'.' * (20 - done)}] {t:5.1f}/{total_s:4.1f} s {phase:12s} "
                 f"N {pose[1]:+6.2f} E {pose[2]:+6.2f} yaw {math.degrees(pose[3]):+7.1f}")
 
-    def _arrived(self, stamp_s: float, arrival_s: float) -> None:
-        latency = arrival_s - stamp_s
-        if self._arrival_offset_s is None or latency < self._arrival_offset_s:
-            self._arrival_offset_s = latency
-
-    def _collect(self, msg: Any, wheel: WheelOdometry, arrival_s: float | None = None) -> None:
+    def _collect(self, msg: Any, wheel: WheelOdometry) -> None:
         kind = msg.get_type()
-        arrival = time.monotonic() if arrival_s is None else arrival_s
         if kind == "LOCAL_POSITION_NED":
             t = msg.time_boot_ms * 1e-3
-            self._arrived(t, arrival)
             if not self.series.truth or t > self.series.truth[-1][0]:
                 self.series.truth.append((t, float(msg.x), float(msg.y), self._last_yaw))
             self._speed_m_s = math.hypot(float(msg.vx), float(msg.vy))
@@ -537,11 +534,8 @@ class Demo:
             self._mode = int(msg.custom_mode)
         elif kind == "MISSION_ITEM_REACHED":
             self._reached += 1
-        elif kind == "SIMSTATE" and self._arrival_offset_s is not None:
-            self._last_yaw = float(msg.yaw)
-            t = arrival - self._arrival_offset_s
-            if not self.series.truth_yaw or t > self.series.truth_yaw[-1][0]:
-                self.series.truth_yaw.append((t, self._last_yaw))
+        elif kind == "SIMSTATE":
+            self._last_yaw = self._yaw_waiting = float(msg.yaw)
         elif kind == "ODOMETRY":
             self.series.odometry_msgs += 1
             w, _, _, z = msg.q
@@ -552,9 +546,11 @@ class Demo:
             pose = wheel.update(left_m=float(msg.distance[0]), right_m=float(msg.distance[1]))
             # Our pose is x forward / y left / yaw CCW; truth and ODOMETRY are y right, yaw CW.
             t = msg.time_usec * 1e-6
-            self._arrived(t, arrival)
             if not self.series.wheel or t > self.series.wheel[-1][0]:
                 self.series.wheel.append((t, pose.x_m, -pose.y_m, -pose.yaw_rad))
+            if self._yaw_waiting is not None and (not self.series.truth_yaw or t > self.series.truth_yaw[-1][0]):
+                self.series.truth_yaw.append((t, self._yaw_waiting))
+            self._yaw_waiting = None
         elif kind == "STATUSTEXT":
             self.series.statustext.append(str(msg.text))
 

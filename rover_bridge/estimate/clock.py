@@ -5,7 +5,11 @@ The filter runs on the autopilot's own stamps (WHEEL_DISTANCE.time_usec, ATTITUD
 network and scheduling jitter cannot shift the gyro against the wheels. Only publishing needs
 "now" on that clock: one offset, the smallest arrival latency seen over every stream, maps the
 caller's now_s onto it. The offset may creep up by CLOCK_DRIFT seconds per second, so an
-autopilot clock that runs slow against ours is followed.
+autopilot clock that runs slow against ours is followed; one that fell behind at once (a SITL
+starved on a busy machine re-bases its clock rather than bursting: 0.75 s measured in
+`rover-bridge demo`) shows as a whole LATENCY_WINDOW_S whose smallest latency is STEP_S or more
+above the offset, which then jumps to it: creeping, ODOMETRY was stamped that far ahead of its pose
+for STEP / CLOCK_DRIFT seconds (15 s, 87 deg of heading error against the truth in a spin).
 
 One mapping for all streams, not one per stream: separate offsets differ by arrival jitter (tens
 of ms on a busy machine), which shifted the gyro against the wheels and cost degrees of heading
@@ -29,6 +33,8 @@ from dataclasses import dataclass
 # s/s: how fast the latency offset may creep up. Generous, so a sender's clock that runs slow
 # against ours (an emulator behind real time on a loaded machine) is followed within seconds.
 CLOCK_DRIFT = 0.05
+LATENCY_WINDOW_S = 1.0  # a step of the latency is judged over whole windows of this length
+STEP_S = 0.1  # a window's smallest latency this far above the offset: the autopilot's clock fell behind
 REORDER_WINDOW_S = 0.5  # stamps further back than this are a restarted clock, not reordering
 JUMP_S = 5.0  # a stamp this far from the clock's now (no link is that late) is another epoch
 
@@ -53,6 +59,7 @@ class AutopilotClock:
         self._last_now_s = 0.0
         self._last_stamp_s: dict[str, float] = {}  # per stream, raw (as sent)
         self._shift_s: dict[str, float] = {}  # per stream: raw stamp - boot clock time
+        self._window: tuple[float, float] | None = None  # (start, smallest latency) of the current window
 
     def observe(self, stamp_s: float, now_s: float, stream: str = "") -> Stamp:
         """One stamp of `stream` that arrived at now_s: its time on the boot clock (see the module doc)."""
@@ -83,10 +90,26 @@ class AutopilotClock:
         latency = now_s - t
         if self.offset_s is None:
             self.offset_s = latency
+            self._window = None
         else:
             self.offset_s = min(self.offset_s + CLOCK_DRIFT * max(0.0, now_s - self._last_now_s), latency)
         self._last_now_s = now_s
+        self._follow_step(now_s, latency)
         return Stamp(t, event, jump)
+
+    def _follow_step(self, now_s: float, latency_s: float) -> None:
+        """A whole window's smallest latency STEP_S above the offset: the offset jumps to it (module doc)."""
+        window = self._window
+        if window is None or now_s < window[0]:
+            self._window = (now_s, latency_s)
+            return
+        start, smallest = window[0], min(window[1], latency_s)
+        if now_s - start < LATENCY_WINDOW_S:
+            self._window = (start, smallest)
+            return
+        if self.offset_s is not None and smallest > self.offset_s + STEP_S:
+            self.offset_s = smallest
+        self._window = (now_s, latency_s)
 
     def rebase(self, stamp_s: float, stream: str = "") -> float:
         """A stamp of `stream` on the boot clock, without learning from it (see observe)."""

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 
 from rover_bridge import frames
-from rover_bridge.estimate.ekf import IV, IW, IX, IY, IYAW, Floats, Rows
+from rover_bridge.estimate.models import IV, IW, IX, IY, IYAW, Floats, Rows
 from rover_bridge.frames import LocalAnchor
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.wire import FLOAT32_MAX, Link, f32, uint

@@ -14,7 +14,6 @@ import json
 import logging
 import os
 import signal
-import threading
 import time
 from dataclasses import replace
 from types import FrameType
@@ -26,7 +25,6 @@ from rover_bridge.app.loop import Runner, TlogWriter
 from rover_bridge.app.systemd import SystemdNotifier
 from rover_bridge.command.core import EMERGENCY_PROBE_TS1, CommandState
 from rover_bridge.errors import ConfigError
-from rover_bridge.estimate import ekf
 from rover_bridge.mavlink.links import Endpoint, check_url
 from rover_bridge.mavlink.signing import SignatureVerifier, load_key, signing_timestamp
 from rover_bridge.mavlink.wire import Link
@@ -77,18 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop safely after this many seconds (tests, demos)")
 
 
-def _import_filterpy() -> None:
-    try:
-        ekf.filter_class()
-    except Exception:  # the filter keeps its plain holder: nothing is computed differently
-        log.exception("filterpy could not be imported; the EKF's state stays in its plain holder")
-
-
 def main(args: argparse.Namespace) -> int:
-    # filterpy, and through it scipy (0.45 s), is imported while the bridge already runs, in a thread of its
-    # own: never in the loop, never before the first HEARTBEAT (rover_bridge.estimate.ekf).
-    ekf.load_in_background()
-    threading.Thread(target=_import_filterpy, name="import-filterpy", daemon=True).start()
     profile = load_profile(args.params)
     if getattr(args, "key_file", None):
         profile = replace(profile, security=replace(profile.security, key_file=args.key_file))
@@ -134,9 +121,18 @@ def main(args: argparse.Namespace) -> int:
     guard.start()
     notifier = SystemdNotifier()
 
+    started: list[bool] = []
     told_silent: list[bool] = []
 
     def on_pass(now_s: float) -> None:
+        if not started:
+            # After the first pass (its HEARTBEAT is out): the filter, which imports filterpy and scipy
+            # (about 0.65 s here). Before READY=1 and the first pass the watchdogs count: the loop waits
+            # for it once, at start, never later.
+            started.append(True)
+            core.estimate.start_filter()
+            now_s = time.monotonic()
+            notifier.ready()
         guard.passed(now_s)
         guard.frames = runner.emergency_frames
         notifier.ping(now_s)
@@ -149,10 +145,6 @@ def main(args: argparse.Namespace) -> int:
     end = None if args.duration is None else start + args.duration
     log.info("rover-bridge running: autopilot %s, gcs %s, profile %s", args.autopilot,
              ", ".join(gcs_urls) or "none", args.params)
-    if ekf.NATIVE_KERNEL is None:
-        log.warning("EKF: the C kernel was not built at install (no C compiler or Python headers?): its Python "
-                    "kernel runs instead, the same numbers for more CPU (README, Performance)")
-    notifier.ready()
     code = 0
     confirmed: bool | None = None
     try:
@@ -201,7 +193,6 @@ def write_stats(path: str, runner: Runner, verifier: SignatureVerifier | None = 
         "statustext_suppressed": dict(core.reporter.limiter.suppressed),
         "security": dict(core.gate.counters),
         "signatures": dict(verifier.counters) if verifier is not None else {},
-        "ekf_kernel": ekf.kernel_name(ekf.DEFAULT_KERNEL),
     }
     with open(path, "w", encoding="utf-8") as f:
         json.dump(stats, f, indent=1, default=str)

@@ -1,0 +1,92 @@
+"""filterpy's KalmanFilter running the extended (linearised) filter of models.py.
+
+Imports filterpy, and through it scipy (about 0.65 s): only the filter's constructor imports this
+module, so a process that builds its filter after its first HEARTBEAT does not wait for it.
+
+An EKF is a Kalman filter on the model linearised at the state; filterpy's KalmanFilter runs both
+steps of it:
+
+- predict: filterpy's predict with F (models.motion's Jacobian), Q = models.process_noise and, as its
+  control input, what the exact arc adds to F x (B = I, u = fx(x) - F x): x becomes fx(x), P becomes F P F' + Q;
+- update: filterpy's update with H = models.H_jacobian and z - h(x) + H x as the measurement: its
+  innovation z - H x is then the model's z - h(x) (models.residual: the heading's wrapped); its gain,
+  Joseph's form for P. Any of the measurement rows (the wheels' two, the gyro's one, the three at once).
+
+Why not filterpy's ExtendedKalmanFilter, which does the same with callbacks: its update inverts S with
+scipy.linalg.inv, whose validation and LAPACK lookup made it the largest cost of a filter cycle in the
+running bridge (measured, cold caches: 240 us of a 750 us cycle, against 60 us for KalmanFilter's
+update with the closed-form inverse below; notes in the module's commit). KalmanFilter takes its
+inverse as a parameter (`inv`).
+
+KalmanFilter reshapes z to its dim_z before an update (1.4.5 even when H is given): dim_z is set to the
+update's rows each time.
+"""
+
+# Kalman-filter notation (F, H, Q, R, S) reads better than pep8 names here.
+# ruff: noqa: N803, N806
+from __future__ import annotations
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from rover_bridge.estimate.models import N_STATES, H_jacobian, Mat, Vec, hx, motion, process_noise, residual
+
+
+def small_inverse(S: Mat) -> Mat:
+    """S^-1 for the 1 to 3 rows of an update, in closed form (numpy's inverse for more)."""
+    n = len(S)
+    if n == 1:
+        return 1.0 / S  # type: ignore[no-any-return]
+    if n == 2:
+        (a, b), (c, d) = S.tolist()
+        return np.array([[d, -b], [-c, a]]) / (a * d - b * c)  # type: ignore[no-any-return]
+    if n == 3:
+        (a, b, c), (d, e, f), (g, h, i) = S.tolist()
+        A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+        return np.array([[A, c * h - b * i, b * f - c * e], [B, a * i - c * g, c * d - a * f],  # type: ignore[no-any-return]
+                         [C, b * g - a * h, a * e - b * d]]) / (a * A + b * B + c * C)
+    return np.linalg.inv(S).astype(np.float64)
+
+
+class ArcKalmanFilter(KalmanFilter):  # type: ignore[misc]  # filterpy has no type information
+    """filterpy's KalmanFilter with the two steps of the extended filter (module docstring)."""
+
+    x: Vec  # filterpy's state and covariance
+    P: Mat
+
+    def __init__(self, track_width_m: float, learn_geometry: bool) -> None:
+        super().__init__(dim_x=N_STATES, dim_z=1)
+        self.track_width_m = track_width_m
+        self.learn_geometry = learn_geometry
+        self.B = np.eye(N_STATES)  # the control input is what the arc adds to F x
+        self.inv = small_inverse
+
+    def predict_arc(self, dt_s: float) -> None:
+        """One prediction step of dt_s."""
+        x = self.x
+        x_new, F = motion(x, dt_s, self.track_width_m)
+        self.F = F
+        self.Q = process_noise(x, dt_s, self.learn_geometry)
+        self.predict(u=x_new - F @ x)
+
+    def update_rows(self, z: Vec, R: Mat, wheels: bool, gyro: bool, consider: int | None = None) -> None:
+        """The update of the wheels' [speed, heading] rows and/or the gyro's (models.hx).
+
+        `consider`: a state this update must not learn (a Schmidt "consider" state: its gain row is zero).
+        filterpy's update has no such notion: after it, the state's value is put back, and its row and
+        column of P become the Schmidt form's, (I - K H) P's column with its own variance unchanged (every
+        other entry of Joseph's form is the same for both gains)."""
+        x = self.x
+        H = H_jacobian(x, self.track_width_m, wheels, gyro)
+        if consider is not None:
+            value, column = float(x[consider]), self.P[:, consider].copy()
+        self.dim_z = len(z)
+        self.R = R
+        self.update(residual(z, hx(x, self.track_width_m, wheels, gyro)) + H @ x, H=H)
+        if consider is not None:
+            var = float(column[consider])
+            column -= self.K @ (H @ column)
+            column[consider] = var
+            self.x[consider] = value
+            self.P[:, consider] = column
+            self.P[consider, :] = column

@@ -1,0 +1,198 @@
+"""What one wheel interval is worth to the filter (pure): its speed measurement, slip, standstill, and
+whether the wheels' heading is trusted.
+
+- Standstill: wheels that have not moved by a reading's resolution for T seconds bound the mean speed
+  by resolution / T (the bound tightens with T, down to STATIONARY_SIGMA_V_M_S).
+- Slip: the wheels' yaw rate over the interval against the gyro's (bias removed), with the gyro's
+  noise and bias, the spread of its samples over the interval (an omega that changed within it is
+  not slip) and at least SLIP_GEOMETRY's geometry uncertainty (a rover whose geometry is off is not
+  slipping). On slip the speed is the one the slower wheel and the gyro give (a slipping wheel turns
+  faster than the ground under it), and the wheels' heading error takes the disagreement.
+- Trust (consistency.py): while the wheels and the gyro disagree, the wheels' heading error is free
+  and the gyro holds the heading; they are trusted again after a standstill, once a whole window in
+  motion agrees.
+"""
+
+# Kalman-filter notation (P for a covariance) reads better than pep8 names here.
+# ruff: noqa: N803, N806
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from rover_bridge.estimate.consistency import ConsistencyWindow
+from rover_bridge.estimate.models import (
+    IB,
+    IKR,
+    IKT,
+    IV,
+    IW,
+    IWY,
+    GeometryPrior,
+    Mat,
+    NoiseModel,
+    Vec,
+    wheel_rate_noise,
+    wheel_rate_partials,
+    wheel_rates,
+)
+
+GEOMETRY_UNKNOWN = GeometryPrior(track_scale=0.05, radius_ratio=0.03)  # calibrate = true: the prior
+SLIP_GEOMETRY = GEOMETRY_UNKNOWN  # the slip test allows at least this much geometry error
+SLIP_V_VAR_FACTOR = 100.0  # slip without a gyro: the wheels' speed variance times this
+SLIP_OTHER_WHEEL_VAR_FACTOR = 4.0  # slip: the other wheel may slip a little too
+SLIP_YAW_FACTOR = 2.0  # slip: the heading error takes this many times the disagreement (1 sigma)
+STATIONARY_SIGMA_V_M_S = 1e-3
+DISTRUST_SIGMA_RAD = 1.0  # the wheels' heading error while they disagree with the gyro: anything
+MAX_INTERVAL_S = 0.2  # longer intervals: their mean speed is not extrapolated
+
+
+@dataclass(frozen=True, slots=True)
+class WheelInterval:
+    """One wheel interval: the nominal distance increments over dt_s, and the gyro over the same interval
+    (its mean rate, bias included, and half the range of its samples), if any."""
+
+    d_left_m: float
+    d_right_m: float
+    dt_s: float
+    gyro_omega_rad_s: float | None = None
+    gyro_spread_rad_s: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class WheelJudgement:
+    """What the interval measures (the wheels' mean speed z_v with variance r_v) and what it says."""
+
+    z_v: float
+    r_v: float
+    slip: bool
+    stationary: bool
+    slip_d2: float  # squared Mahalanobis distance of the wheel/gyro yaw-rate disagreement
+    heading_var: float  # variance the wheels' heading error gets before this interval is fused
+
+
+class WheelJudge:
+    """Judges each wheel interval against the filter's state (module docstring)."""
+
+    def __init__(self, track_width_m: float, noise: NoiseModel) -> None:
+        self.track_width_m = track_width_m
+        self.noise = noise
+        self._gate2 = noise.gate_sigma ** 2
+        self._reading_var = 2.0 * (noise.wheel_noise_m / track_width_m) ** 2  # one reading's heading noise
+        self._still_since_s: float | None = None  # start of the current standstill
+        self.window = ConsistencyWindow()
+        self.trusted = True  # the wheels' heading: trusted, or free while they disagree with the gyro
+        self.agreed = False  # the last interval completed agreeing windows (what the filter learnt is sound)
+        self._may_trust = True  # a standstill since the last disagreement
+        self._prev: tuple[float, float, float] | None = None  # the last interval's (mean speed, variance, dt)
+        self.accel_m_s2 = 0.0  # from the last two intervals' mean speeds (publishing extrapolates with it)
+
+    def restart(self) -> None:
+        """The motion restarted (a reboot, a silence, a new baseline): the standstill, if any, and the last
+        interval's speed are forgotten."""
+        self._still_since_s = None
+        self._prev = None
+        self.accel_m_s2 = 0.0
+
+    def judge(self, t_s: float, w: WheelInterval, x: Vec, P: Mat) -> WheelJudgement:
+        """The interval ending at t_s against the state (x, P) predicted to t_s."""
+        L = self.track_width_m
+        self.agreed = False
+        if w.d_left_m == 0.0 and w.d_right_m == 0.0:
+            if self._still_since_s is None:
+                self._still_since_s = t_s - w.dt_s
+            self._prev = None
+            self.accel_m_s2 = 0.0
+            still_s = max(w.dt_s, t_s - self._still_since_s)
+            self.window.clear()
+            self._may_trust = True
+            return WheelJudgement(0.0, max(STATIONARY_SIGMA_V_M_S, self.noise.wheel_noise_m / still_s) ** 2,
+                                  False, True, 0.0, self._distrust_var(P))
+        self._still_since_s = None
+        mean_v = 0.5 * (w.d_left_m + w.d_right_m) / w.dt_s
+        r_v, r_omega = wheel_rate_noise(w.d_left_m, w.d_right_m, w.dt_s, L, self.noise)
+        z_v, r_end = self._speed_at_end(mean_v, r_v, w.dt_s)
+        d2, y = self._slip_test((w.d_right_m - w.d_left_m) / (L * w.dt_s), r_omega, w, x, P)
+        if d2 > self._gate2:
+            self._prev = None
+            self.accel_m_s2 = 0.0
+            self.window.clear()
+            z_v, r_v = self._slip_speed(w, x, r_v)
+            return WheelJudgement(z_v, r_v, True, False, d2,
+                                  max(self._distrust_var(P), float(P[IWY, IWY]) + (SLIP_YAW_FACTOR * y * w.dt_s) ** 2))
+        self._check_agreement(w, y * w.dt_s, x, P)
+        return WheelJudgement(z_v, r_end, False, False, d2, self._distrust_var(P))
+
+    def _speed_at_end(self, mean_v: float, r_v: float, dt_s: float) -> tuple[float, float]:
+        """(speed, variance) at the end of the interval, the reading's time: wheels measure the mean speed of
+        each interval, half an interval behind every change of speed (0.125 m/s in a stop from 0.5 m/s at
+        20 Hz: the published pose then ran 5 mm past it). Extrapolated from the last two means (a constant
+        acceleration over them); the mean itself after a standstill, slip or a gap."""
+        prev, self._prev = self._prev, (mean_v, r_v, dt_s)
+        if prev is None or prev[2] > MAX_INTERVAL_S or dt_s > MAX_INTERVAL_S:
+            self.accel_m_s2 = 0.0
+            return mean_v, r_v
+        self.accel_m_s2 = (mean_v - prev[0]) / (0.5 * (dt_s + prev[2]))
+        k = dt_s / (dt_s + prev[2])
+        return mean_v + k * (mean_v - prev[0]), (1.0 + k) ** 2 * r_v + k * k * prev[1]
+
+    def _distrust_var(self, P: Mat) -> float:
+        return float(P[IWY, IWY]) if self.trusted else max(float(P[IWY, IWY]), DISTRUST_SIGMA_RAD ** 2)
+
+    def _slip_test(self, z_omega_rad_s: float, r_omega: float, w: WheelInterval, x: Vec, P: Mat
+                   ) -> tuple[float, float]:
+        """(d2, y): the wheels' yaw rate against what they would read if the body turned at gyro - bias."""
+        if w.gyro_omega_rad_s is None:
+            return 0.0, 0.0
+        L = self.track_width_m
+        _, _, _, v, _, b, kt, q, _ = x.tolist()
+        omega = w.gyro_omega_rad_s - b
+        _, h_w, h_kt, h_kr = wheel_rate_partials(v, omega, kt, q, L)[1]
+        var = (r_omega + h_w ** 2 * (self.noise.gyro_noise_rad_s ** 2 + float(P[IB, IB]) + w.gyro_spread_rad_s ** 2)
+               + h_kt ** 2 * max(float(P[IKT, IKT]), SLIP_GEOMETRY.track_scale ** 2)
+               + h_kr ** 2 * max(float(P[IKR, IKR]), SLIP_GEOMETRY.radius_ratio ** 2))
+        xs = x.copy()
+        xs[IW] = omega
+        y = z_omega_rad_s - wheel_rates(xs, L)[1]
+        return y * y / var, y
+
+    def slip_d2(self, z_omega_rad_s: float, r_omega: float, gyro_omega_rad_s: float | None, x: Vec, P: Mat,
+                gyro_spread_rad_s: float = 0.0) -> float:
+        """Squared Mahalanobis distance between the wheels' yaw rate (z_omega_rad_s, variance r_omega) and
+        the gyro's (bias removed)."""
+        return self._slip_test(z_omega_rad_s, r_omega, WheelInterval(0.0, 0.0, 1.0, gyro_omega_rad_s,
+                                                                     gyro_spread_rad_s), x, P)[0]
+
+    def _slip_speed(self, w: WheelInterval, x: Vec, r_v: float) -> tuple[float, float]:
+        """(z, variance) of the wheels' mean speed while they slip: what they would read at the body speed the
+        slower wheel and the gyro give; without the gyro, the reading, SLIP_V_VAR_FACTOR times less sure."""
+        if w.gyro_omega_rad_s is None:
+            return 0.5 * (w.d_left_m + w.d_right_m) / w.dt_s, r_v * SLIP_V_VAR_FACTOR
+        xs = x.copy()
+        L = self.track_width_m
+        omega = w.gyro_omega_rad_s - float(x[IB])
+        q = float(x[IKR])
+        half = 0.5 * float(x[IKT]) * omega * L
+        from_left = w.d_left_m / w.dt_s * 2.0 / (1.0 + q) + half
+        from_right = w.d_right_m / w.dt_s * 2.0 * q / (1.0 + q) - half
+        xs[IV], xs[IW] = min(from_left, from_right, key=abs), omega
+        return wheel_rates(xs, L)[0], r_v * SLIP_OTHER_WHEEL_VAR_FACTOR
+
+    def _check_agreement(self, w: WheelInterval, disagreement_rad: float, x: Vec, P: Mat) -> None:
+        """Feed the consistency window (the interval's disagreement with the gyro, from the slip test); distrust at
+        its first disagreement, trust again (after a standstill) at its first agreement."""
+        if w.gyro_omega_rad_s is None:  # no reference: the last verdict stands
+            self.window.clear()
+            return
+        L = self.track_width_m
+        turn_rad, dist_m = (w.d_right_m - w.d_left_m) / L, 0.5 * (w.d_left_m + w.d_right_m)
+        geometry_rad = math.sqrt(float(P[IKT, IKT])) * abs(turn_rad) + math.sqrt(float(P[IKR, IKR])) * abs(dist_m) / L
+        self.window.add(w.dt_s, turn_rad, disagreement_rad,
+                        (self.noise.gyro_noise_rad_s ** 2 + w.gyro_spread_rad_s ** 2) * w.dt_s * w.dt_s, dist_m,
+                        geometry_rad)
+        agree = self.window.agree(float(P[IB, IB]), self._reading_var)
+        if agree is False:
+            self.trusted = self._may_trust = False
+        elif agree:
+            self.agreed = True
+            self.trusted = self.trusted or self._may_trust

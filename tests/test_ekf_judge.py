@@ -1,0 +1,161 @@
+"""What the filter makes of a wheel interval before fusing it (wheel_judge, consistency) and what its
+prediction misses between samples (sampling): hand cases, each decision on its own."""
+
+# Kalman-filter notation (P for a covariance) reads better than pep8 names here.
+# ruff: noqa: N806
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from rover_bridge.estimate.consistency import AGREE_WINDOWS, WINDOW_S, ConsistencyWindow
+from rover_bridge.estimate.models import IB, IKR, IKT, IV, IW, IWY, N_STATES, NoiseModel
+from rover_bridge.estimate.sampling import GYRO_SAMPLING_FACTOR, SampleCorrections
+from rover_bridge.estimate.wheel_judge import (
+    DISTRUST_SIGMA_RAD,
+    STATIONARY_SIGMA_V_M_S,
+    WheelInterval,
+    WheelJudge,
+)
+
+L = 0.30
+NOISE = NoiseModel()
+DT = 0.05
+
+
+def _state(v: float = 0.5, w: float = 0.0, bias: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    x = np.zeros(N_STATES)
+    x[IV], x[IW], x[IB] = v, w, bias
+    x[IKT] = x[IKR] = 1.0
+    P = np.diag([1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-8, 0.0, 0.0, 1e-6])
+    return x, P
+
+
+def _interval(v: float, w_wheels: float, w_gyro: float | None, dt: float = DT) -> WheelInterval:
+    return WheelInterval((v - 0.5 * w_wheels * L) * dt, (v + 0.5 * w_wheels * L) * dt, dt, w_gyro)
+
+
+# ---------------------------------------------------------------- wheel_judge
+
+def test_a_standstill_bounds_the_speed_tighter_the_longer_it_lasts() -> None:
+    noise = NoiseModel(wheel_noise_m=0.001)
+    judge = WheelJudge(L, noise)
+    x, P = _state(v=0.0)
+    variances = [judge.judge(t * DT, WheelInterval(0.0, 0.0, DT, 0.0), x, P).r_v for t in range(1, 200)]
+    assert variances[0] == pytest.approx((noise.wheel_noise_m / DT) ** 2)
+    assert variances[9] == pytest.approx((noise.wheel_noise_m / (10 * DT)) ** 2)  # still for 0.5 s
+    assert variances[-1] == STATIONARY_SIGMA_V_M_S**2  # never tighter than this
+    assert all(b <= a for a, b in itertools.pairwise(variances))
+
+
+def test_the_speed_is_the_one_at_the_end_of_the_interval() -> None:
+    # Wheels measure each interval's mean: accelerating from 0.4 to 0.5 m/s (means) the speed at the end
+    # of the second interval is half an interval further, 0.55 m/s.
+    judge = WheelJudge(L, NOISE)
+    x, P = _state()
+    judge.judge(DT, _interval(0.4, 0.0, 0.0), x, P)
+    j = judge.judge(2 * DT, _interval(0.5, 0.0, 0.0), x, P)
+    assert j.z_v == pytest.approx(0.55)
+    assert judge.accel_m_s2 == pytest.approx(2.0)
+
+
+def test_slip_takes_the_speed_of_the_slower_wheel_and_frees_the_wheels_heading() -> None:
+    judge = WheelJudge(L, NOISE)
+    x, P = _state()
+    # the left wheel spins 0.3 m/s faster than the ground; the right one and the gyro (0) say 0.5 m/s
+    j = judge.judge(DT, WheelInterval(0.8 * DT, 0.5 * DT, DT, 0.0), x, P)
+    assert j.slip and j.z_v == pytest.approx(0.5)
+    assert j.heading_var >= P[IWY, IWY] + (0.3 / L * DT) ** 2  # the disagreement, at least
+
+
+def test_the_wheels_heading_is_trusted_again_only_after_a_standstill_and_whole_agreeing_windows() -> None:
+    judge = WheelJudge(L, NOISE)
+    x, P = _state(w=0.5)
+    t = 0.0
+
+    def drive(seconds: float, w_wheels: float, w_gyro: float, v: float = 0.5) -> float:
+        nonlocal t
+        var = 0.0
+        for _ in range(round(seconds / DT)):
+            t += DT
+            var = judge.judge(t, _interval(v, w_wheels, w_gyro), x, P).heading_var
+        return var
+
+    assert drive(2.0, 0.5, 0.5) == P[IWY, IWY] and judge.trusted  # they agree
+    # the wheels turn 3 % less than the gyro (a track 3 % off): not slip, but they disagree over the window
+    assert drive(1.0, 0.485, 0.5) >= DISTRUST_SIGMA_RAD**2 and not judge.trusted
+    assert drive(3.0, 0.5, 0.5) >= DISTRUST_SIGMA_RAD**2  # agreeing again in motion is not enough
+    drive(0.5, 0.0, 0.0, v=0.0)  # a standstill
+    assert not judge.trusted
+    drive(WINDOW_S * (AGREE_WINDOWS + 0.5), 0.5, 0.5)
+    assert judge.trusted
+
+
+def test_the_slip_test_allows_the_gyros_noise_bias_and_spread() -> None:
+    judge = WheelJudge(L, NOISE)
+    x, P = _state(w=0.5, bias=0.01)
+    # the gyro reads bias + rate: 0.51 is the wheels' 0.5
+    assert judge.slip_d2(0.5, 1e-6, 0.51, x, P) == pytest.approx(0.0, abs=1e-9)
+    d2 = judge.slip_d2(0.6, 1e-6, 0.51, x, P)
+    assert judge.slip_d2(0.6, 1e-6, 0.51, x, P, gyro_spread_rad_s=0.1) < d2  # a rate that changed within
+
+
+# ---------------------------------------------------------------- consistency
+
+def test_a_window_judges_only_a_whole_window_with_motion_in_it() -> None:
+    window = ConsistencyWindow()
+
+    def run(seconds: float, dist_m: float) -> list[bool | None]:
+        verdicts = []
+        for _ in range(round(seconds / DT)):
+            window.add(DT, 0.0, 0.0, 1e-8, dist_m)
+            verdicts.append(window.agree(1e-8, 1e-8))
+        return verdicts
+
+    assert run(2.0, 0.0) == [None] * 40  # no motion: agreement proves nothing
+    window.clear()
+    verdicts = run(WINDOW_S * AGREE_WINDOWS, 0.025)  # AGREE_WINDOWS whole windows of motion: trust
+    assert verdicts.index(True) == len(verdicts) - 1
+
+
+def test_a_disagreement_is_judged_at_once_against_what_the_noise_and_the_geometry_allow() -> None:
+    window = ConsistencyWindow()
+    for _ in range(round(0.3 / DT)):
+        window.add(DT, 0.01, 0.002, 1e-8, 0.025)  # 2 mrad per interval against 0.1 mrad of noise
+    assert window.agree(1e-8, 1e-8) is False
+    # the same disagreement is the geometry's when its uncertainty then (1 sigma) was as large
+    for _ in range(round(0.3 / DT)):
+        window.add(DT, 0.01, 0.002, 1e-8, 0.025, geometry_rad=0.001)
+    assert window.agree(1e-8, 1e-8) is None
+
+
+# ---------------------------------------------------------------- sampling
+
+def test_the_turn_between_gyro_samples_is_their_trapezoid() -> None:
+    s = SampleCorrections()
+    assert s.gyro(0.0, 0.0) == (0.0, 0.0)  # the first sample: nothing to correct
+    s.predicted(0.0, 0.0, 0.02)  # the prediction turned at the last sample's rate, 0
+    missed, var = s.gyro(0.02, 1.0)  # the rate rose to 1 rad/s: the body turned 0.01 rad
+    assert missed == pytest.approx(0.01)
+    assert var == pytest.approx((GYRO_SAMPLING_FACTOR * 1.0 * 0.02) ** 2)
+    assert s.alpha_rad_s2 == pytest.approx(50.0)
+    s.predicted(0.0, 1.0, 0.02)
+    assert s.gyro(0.04, 1.0) == (pytest.approx(0.0), 0.0)  # a constant rate: the prediction was right
+    s.restart()
+    assert s.gyro(0.5, 2.0) == (0.0, 0.0)  # no trapezoid across a restart
+
+
+def test_the_distance_is_what_the_wheels_measured_or_the_trapezoid_while_they_slip() -> None:
+    s = SampleCorrections()
+    s.predicted(0.4, 0.0, 0.05)  # the prediction moved 0.02 m
+    assert s.wheels(0.05, 0.5, 0.0225) == pytest.approx(0.0025)  # the wheels went 0.0225
+    s.predicted(0.5, 0.0, 0.05)
+    assert s.wheels(0.10, 0.6, None) == pytest.approx(0.5 * (0.5 + 0.6) * 0.05 - 0.025)  # slip
+    s.predicted(0.6, 0.0, 0.05)
+    s.wheels_refused()
+    assert s.wheels(0.20, 0.6, 0.03) == pytest.approx(0.03)  # the refused reading started the interval
+    assert math.isclose(s.wheels(0.25, 0.6, 0.0), 0.0)
