@@ -42,6 +42,7 @@ class StopRig(BridgeRig):
     def __init__(self, profile: Profile | None = None) -> None:
         self.profile = profile or shipped_profile()
         self.outputs: list[Sample] = []
+        self.still: list[bool] = []  # the rover stood still at the end of each step (truth)
         super().__init__(self.profile)
         self.emu.sent_log = []
 
@@ -49,6 +50,7 @@ class StopRig(BridgeRig):
         super()._record()
         o = self.emu.servo_outputs
         self.outputs.append((self.ls.t_s, o[1], o[3], o[5]))
+        self.still.append(self.stopped())
 
     def since(self, t_s: float) -> list[Sample]:
         return [s for s in self.outputs if s[0] >= t_s]
@@ -119,12 +121,11 @@ def check_braked(rig: StopRig, from_s: float) -> tuple[float, float]:
 
 def stops_within(rig: StopRig, from_s: float, bound_s: float) -> tuple[float, float]:
     """The rover truly stops within `bound_s` of `from_s`: (seconds it took, metres it went meanwhile)."""
-    i0 = next(i for i, s in enumerate(rig.outputs) if s[0] >= from_s)
     assert rig.run_until(rig.stopped, from_s + bound_s - rig.ls.t_s)
-    stop_s = rig.ls.t_s - from_s
-    assert len(rig.track) == len(rig.outputs)  # both kept every step
-    track = rig.track[i0:]
-    return stop_s, sum(math.dist(a, b) for a, b in itertools.pairwise(track))
+    assert len(rig.track) == len(rig.outputs) == len(rig.still)  # all kept every step
+    i0 = next(i for i, s in enumerate(rig.outputs) if s[0] >= from_s)
+    i1 = next(i for i in range(i0, len(rig.still)) if rig.still[i])
+    return rig.outputs[i1][0] - from_s, sum(math.dist(a, b) for a, b in itertools.pairwise(rig.track[i0:i1 + 1]))
 
 
 # -- the tests ------------------------------------------------------------------------------------------------
@@ -139,7 +140,8 @@ def test_a_stale_demand_in_auto_brakes_through_the_limiter_then_idles_and_the_mi
     try:
         t_cmd = rig.ls.t_s
         rig.ls.gcs.mav.command_long_send(1, 1, P.MAV_CMD_SET_MESSAGE_INTERVAL, 0, DEMAND, -1, 0, 0, 0, 0, 0)
-        rig.run(3.0)
+        top_m_s = p.robot.max_wheel_rad_s * p.robot.wheel_radius_m
+        rig.run(p.demand.timeout_s + top_m_s / p.limits.max_linear_decel_m_s2 + 0.5)  # time to brake from any speed
         demand = rig.sent(DEMAND)
         last = max(t for t in demand if t <= rig.ls.t_s)
         assert t_cmd - EPS_S <= last <= t_cmd + 0.1 and not [t for t in demand if last < t]  # the stream stopped
