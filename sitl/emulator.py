@@ -117,10 +117,14 @@ class Emulator:
             "rx_bad_data": 0,
             "rx_dropped_silence": 0,
             "tx_dropped_silence": 0,
+            "tx_withheld": 0,
             "tx_messages": 0,
             "rx_lost_on_close_bytes": 0,
         }
         self.sent_log: list[tuple[float, MAVLinkMessage]] | None = [] if record_sent else None
+        # Message ids the autopilot stops sending (a test's switch: its heartbeat gone silent while the rest
+        # streams on, a stream that stops); built as always, dropped before the link, counted.
+        self.withheld: set[int] = set()
 
     # ------------------------------------------------------------------ endpoint
     def open(self, connection: str) -> None:
@@ -222,6 +226,9 @@ class Emulator:
             for msg in messages:
                 if silent:
                     self._counters["tx_dropped_silence"] += 1
+                    continue
+                if msg.get_msgId() in self.withheld:
+                    self._counters["tx_withheld"] += 1
                     continue
                 self._mav_out.send(msg)
                 self._counters["tx_messages"] += 1

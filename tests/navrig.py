@@ -44,8 +44,8 @@ def shipped_parm() -> dict[str, float]:
 class BridgeRig:
     """The bridge between a pymavlink GCS and the emulator, the shipped .parm loaded; the true track kept."""
 
-    def __init__(self, **params: float) -> None:
-        self.ls = Lockstep(shipped_profile(), BRIDGE, seed=29, start_armed=True)
+    def __init__(self, profile: Profile | None = None, **params: float) -> None:
+        self.ls = Lockstep(profile or shipped_profile(), BRIDGE, seed=29, start_armed=True)
         for name, value in {**shipped_parm(), **params}.items():
             self.ls.emu.set_param(name, value)
         self.track: list[Point] = []

@@ -16,9 +16,11 @@ starts by arming (ArduPilot sets home and clears SmartRTL's path there) and ends
 from __future__ import annotations
 
 import collections
+import itertools
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -32,6 +34,7 @@ from lockstep import free_udp_port
 from navmetrics import Point, distance_to_path_m, route_figures
 
 from rover_bridge.mavlink.dialect import mavlink, mavutil
+from rover_bridge.params import load_profile
 
 BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
 pytestmark = [
@@ -236,12 +239,12 @@ class Sitl:
 class Bridge:
     """`rover-bridge run` on the SITL's SERIAL0, a ground station on its UDP port."""
 
-    def __init__(self, sitl: Sitl, workdir: Path, profile: Path = PROFILE) -> None:
+    def __init__(self, sitl: Sitl, workdir: Path, profile: Path = PROFILE, autopilot: str | None = None) -> None:
         port = free_udp_port()
         self.log_path = workdir / "bridge.log"
         with open(self.log_path, "ab") as log:
             self.proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "-v", "run", "--params", str(profile),
-                                          "--autopilot", f"tcp:127.0.0.1:{sitl.serial0}",
+                                          "--autopilot", autopilot or f"tcp:127.0.0.1:{sitl.serial0}",
                                           "--gcs", f"udpin:127.0.0.1:{port}"], cwd=REPO, stdout=log,
                                          stderr=subprocess.STDOUT)
         end = time.monotonic() + 30.0
@@ -553,6 +556,77 @@ def test_a_silent_gcs_lets_ardupilots_failsafe_act_through_the_bridge(sides: tup
         side.disarm()
 
 
+# -- every stop path in AUTO (the SIGTERM one just below; heartbeat lost and a stale demand at the end of the file,
+#    through a proxy, once the shared bridge is gone) -------------------------------------------------------------
+
+
+def in_auto_at_speed(side: Side) -> None:
+    side.arm()
+    side.upload(WAYPOINTS)
+    side.set_mode(AUTO)
+    assert side.sitl.monitor.wait(lambda: side.sitl._speed_from_track() > 1.5, 20.0)
+
+
+def outputs_at_trim(mon: Link, since: float) -> float | None:
+    """When the monitor first saw outputs 1 and 3 (the motors) both at trim after `since`."""
+    return next((t for t, m in list(mon.messages) if t > since and m.get_type() == "SERVO_OUTPUT_RAW"
+                 and m.servo1_raw == TRIM and m.servo3_raw == TRIM), None)
+
+
+def stopping(side: Side, since: float) -> tuple[float, float]:
+    """(seconds from `since` until the rover stood still, metres it went meanwhile), from the simulator's truth."""
+    assert side.sitl.monitor.wait(side.sitl.stopped, 10.0)
+    time.sleep(0.5)
+    assert side.sitl.origin_deg is not None
+    lat0, lon0 = side.sitl.origin_deg
+    track = [(t, (math.radians(m.lat * 1e-7 - lat0) * EARTH_RADIUS_M,
+                  math.radians(m.lng * 1e-7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+             for t, m in list(side.sitl.monitor.messages) if t >= since and m.get_type() == "SIMSTATE"]
+    final = track[-1][1]
+    still = next(t for t, p in track if math.dist(p, final) < 0.02)
+    return still - since, sum(math.dist(a[1], b[1]) for a, b in itertools.pairwise(track))
+
+
+def test_a_disarm_in_auto_stops_the_wheels_through_the_bridge(sides: tuple[Side, Side]) -> None:
+    """A GCS disarms mid-mission (forced: 21196): ArduPilot's demand (SERVO5/6) goes to trim at once, the bridge
+    follows it through its limiter to trim on the motor outputs 1/3, the rover stops; ArduPilot's words reach the
+    GCS through the bridge. The shipped profile has no require_armed: the bridge itself says nothing of it."""
+    _anchor, side = sides
+    p = load_profile(PROFILE)
+    mon = side.sitl.monitor
+    in_auto_at_speed(side)
+    t0 = time.monotonic()
+    assert side.gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == mavlink.MAV_RESULT_ACCEPTED
+    assert mon.wait(lambda: outputs_at_trim(mon, t0) is not None, 5.0)
+    at_trim = outputs_at_trim(mon, t0)
+    assert at_trim is not None
+    stop_s, stop_m = stopping(side, t0)
+    ramp = [m.servo1_raw for m in mon.of("SERVO_OUTPUT_RAW", t0)]
+    ramp = ramp[:ramp.index(TRIM) + 1]
+    ramp = ramp[ramp.index(max(ramp)):]  # from where the disarm met it (AUTO may still have been speeding up)
+    demand = [(m.servo5_raw, m.servo6_raw) for m in mon.of("SERVO_OUTPUT_RAW", at_trim)]
+    said = [t for t in side.gcs.texts(t0) if "isarm" in t]
+    # On the monitor's clock: ArduPilot said it disarmed, then the motor outputs began to fall.
+    t_dis = next(t for t, m in list(mon.messages) if t > t0 and m.get_type() == "STATUSTEXT" and "isarm" in m.text)
+    outs = [(t, m.servo1_raw) for t, m in list(mon.messages) if t >= t_dis and m.get_type() == "SERVO_OUTPUT_RAW"]
+    first_down = next(b[0] for a, b in itertools.pairwise(outs) if b[1] < a[1])
+    v0 = (ramp[0] - TRIM) / 500.0 * p.robot.max_wheel_rad_s * p.robot.wheel_radius_m
+    trim_s = at_trim - t0
+    FIGURES.append(f"disarm in AUTO at {v0:.2f} m/s (bridge): outputs 1/3 at trim {1000 * trim_s:.0f} ms after the "
+                   f"command, falling {1000 * (first_down - t_dis):.0f} ms after ArduPilot said it disarmed; rover "
+                   f"still {stop_s:.2f} s / {stop_m:.2f} m after; GCS got {said}")
+    side.set_mode(MANUAL)
+    period_s = 1.0 / p.command.rate_hz
+    # Braked at the limiter's deceleration, not stepped: no faster than that, and not much slower (the demand
+    # arrives every 1/[demand] rate_hz; the links and a loaded machine add a little).
+    assert all(b <= a for a, b in itertools.pairwise(ramp))
+    assert first_down - t_dis <= 1.0 / p.demand.rate_hz + period_s + 0.1  # the trim demand followed at once
+    assert v0 / p.limits.max_linear_decel_m_s2 - 2 * period_s <= trim_s
+    assert trim_s <= 1.0 / p.demand.rate_hz + v0 / p.limits.max_linear_decel_m_s2 + 2 * period_s + 0.25
+    assert demand and all(d == (TRIM, TRIM) for d in demand)  # ArduPilot's own demand: trim, disarmed
+    assert said and stop_m <= 3.0
+
+
 def test_sigterm_in_auto_trims_the_outputs(sides: tuple[Side, Side]) -> None:
     _anchor, side = sides
     assert side.bridge is not None
@@ -575,3 +649,181 @@ def test_sigterm_in_auto_trims_the_outputs(sides: tuple[Side, Side]) -> None:
     assert side.sitl.stopped()
     mon.command(mavlink.MAV_CMD_DO_SET_MODE, 1, MANUAL)  # the bridge is gone: the monitor tidies up
     mon.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
+
+
+class Proxy:
+    """A TCP proxy between the bridge and the SITL's SERIAL0: whole MAVLink frames forwarded both ways, except
+    those from the autopilot whose id is in `drop` (None: every frame). Keeps when it last forwarded each message
+    id to the bridge, and every RC_CHANNELS_OVERRIDE the bridge sent (time, channel 1, channel 3)."""
+
+    def __init__(self, serial0: int) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.serial0 = serial0
+        self.drop: frozenset[int] | None = frozenset()
+        self.forwarded: dict[int, float] = {}
+        self.overrides: list[tuple[float, int, int]] = []
+        self.alive = True
+        self.socks: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        bridge, _ = self.server.accept()
+        autopilot = socket.create_connection(("127.0.0.1", self.serial0))
+        self.socks = [bridge, autopilot]
+        threading.Thread(target=self._pump, args=(autopilot, bridge, True), daemon=True).start()
+        threading.Thread(target=self._pump, args=(bridge, autopilot, False), daemon=True).start()
+
+    def _pump(self, src: socket.socket, dst: socket.socket, to_bridge: bool) -> None:
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        while self.alive:
+            try:
+                data = src.recv(65536)
+            except OSError:
+                return
+            if not data:
+                return
+            out = bytearray()
+            now = time.monotonic()
+            for m in parser.parse_buffer(data) or []:
+                if m.get_type() == "BAD_DATA":
+                    continue
+                mid = m.get_msgId()
+                if to_bridge:
+                    drop = self.drop
+                    if drop is None or mid in drop:
+                        continue
+                    self.forwarded[mid] = now
+                elif m.get_type() == "RC_CHANNELS_OVERRIDE":
+                    self.overrides.append((now, m.chan1_raw, m.chan3_raw))
+                out += m.get_msgbuf()
+            try:
+                dst.sendall(out)
+            except OSError:
+                return
+
+    def close(self) -> None:
+        self.alive = False
+        for sock in (*self.socks, self.server):
+            sock.close()
+
+
+def proxied(side: Side, workdir: Path) -> tuple[Proxy, Side]:
+    """The bridge again, now through a Proxy (the shared bridge, if still running, stopped first: SERIAL0 serves
+    one client)."""
+    if side.bridge is not None and side.bridge.proc.poll() is None:
+        side.bridge.stop()
+    proxy = Proxy(side.sitl.serial0)
+    bridge = Bridge(side.sitl, workdir, autopilot=f"tcp:127.0.0.1:{proxy.port}")
+    return proxy, Side("bridge via proxy", side.sitl, bridge.gcs, bridge)
+
+
+def text_at(side: Side, text: str, since: float) -> float | None:
+    return next((t for t, m in list(side.gcs.messages) if t >= since and m.get_type() == "STATUSTEXT"
+                 and m.text == text), None)
+
+
+def tidy_up(side: Side, proxy: Proxy) -> None:
+    """Back to MANUAL, disarmed, the bridge and the proxy gone (the monitor does it: the bridge may be neutral)."""
+    mon = side.sitl.monitor
+    mon.command(mavlink.MAV_CMD_DO_SET_MODE, 1, MANUAL)
+    mon.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
+    assert side.bridge is not None
+    if side.bridge.proc.poll() is None:
+        side.bridge.stop()
+    side.bridge.close()
+    proxy.close()
+    time.sleep(1.0)
+
+
+@pytest.mark.parametrize("dropped", ["heartbeat", "everything"])
+def test_the_autopilots_heartbeat_lost_in_auto_through_a_proxy(sides: tuple[Side, Side], dropped: str,
+                                                               tmp_path: Path) -> None:
+    """From the bridge's view the autopilot's HEARTBEAT stops (alone, or with everything else: a link that fails
+    one way). The bridge says the heartbeat lost within safety.heartbeat_timeout_s of the last one it got, and from
+    then on sends neutral overrides every period (it does not release them: ArduPilot's passthrough outputs would
+    follow the radio), so ArduPilot's motor outputs sit at trim because of the bridge, not RC_OVERRIDE_TIME."""
+    _anchor, shared = sides
+    p = load_profile(PROFILE)
+    proxy, side = proxied(shared, tmp_path)
+    mon = side.sitl.monitor
+    try:
+        in_auto_at_speed(side)
+        t0 = time.monotonic()
+        proxy.drop = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT}) if dropped == "heartbeat" else None
+        last_hb = proxy.forwarded[mavlink.MAVLINK_MSG_ID_HEARTBEAT]
+        lost_text = "RB: autopilot heartbeat lost, neutral"
+        assert side.gcs.wait(lambda: text_at(side, lost_text, t0) is not None, p.safety.heartbeat_timeout_s + 3.0)
+        lost = text_at(side, lost_text, t0)
+        assert lost is not None
+        braking = text_at(side, "RB: no demand from the autopilot, braking", t0)
+        time.sleep(2.0)
+        end = time.monotonic()
+        after = [o for o in proxy.overrides if lost + 0.1 <= o[0] <= end]
+        at_trim = outputs_at_trim(mon, t0)
+        assert at_trim is not None
+        stop_s, stop_m = stopping(side, t0)
+        demand = [m.servo5_raw for m in mon.of("SERVO_OUTPUT_RAW", lost + 0.1)]
+        FIGURES.append(f"heartbeat lost in AUTO (proxy drops {dropped} to the bridge): said "
+                       f"{1000 * (lost - last_hb):.0f} ms after the last HEARTBEAT forwarded"
+                       + (f", braking for the stale demand {1000 * (braking - t0):.0f} ms after the drop" if braking
+                          else "")
+                       + f"; outputs 1/3 at trim {1000 * (at_trim - t0):.0f} ms after the drop; "
+                       f"{len(after) / (end - lost - 0.1):.1f} neutral overrides/s kept coming; "
+                       f"rover still {stop_s:.2f} s / {stop_m:.2f} m after the drop")
+        timeout = p.safety.heartbeat_timeout_s
+        assert timeout - 0.1 <= lost - last_hb <= timeout + 0.5
+        assert after and all(o[1:] == (TRIM, TRIM) for o in after)  # neutral, refreshed: not released
+        assert len(after) >= 0.8 * p.command.rate_hz * (end - lost - 0.1)
+        if dropped == "heartbeat":
+            assert braking is None and any(abs(d - TRIM) > 100 for d in demand)  # the demand came, saying drive
+            assert at_trim - lost <= 0.25  # neutral at once: no ramp
+        else:
+            assert braking is not None and braking - t0 <= p.demand.timeout_s + 0.25  # the stale demand first
+    finally:
+        tidy_up(side, proxy)
+
+
+def test_a_stale_demand_in_auto_brakes_through_a_proxy(sides: tuple[Side, Side], tmp_path: Path) -> None:
+    """SERVO_OUTPUT_RAW stops reaching the bridge while HEARTBEAT goes on (the proxy drops id 36): [demand]
+    timeout_s after the last one the bridge brakes, its overrides ramping to trim at the limiter's deceleration;
+    ArduPilot still asks to drive. (A GCS's SET_MESSAGE_INTERVAL -1 through the bridge does the same until the
+    bridge asks for the stream again: tests/test_stop_paths_e2e.py; the monitor's own -1 would change only its
+    own link's rate, SERIAL1.)"""
+    _anchor, shared = sides
+    p = load_profile(PROFILE)
+    proxy, side = proxied(shared, tmp_path)
+    mon = side.sitl.monitor
+    period_s = 1.0 / p.command.rate_hz
+    try:
+        in_auto_at_speed(side)
+        t0 = time.monotonic()
+        proxy.drop = frozenset({mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW})
+        last = proxy.forwarded[mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW]
+        braking_text = "RB: no demand from the autopilot, braking"
+        assert side.gcs.wait(lambda: text_at(side, braking_text, t0) is not None, 3.0)
+        braking = text_at(side, braking_text, t0)
+        assert braking is not None
+        assert side.gcs.wait(lambda: any(o[0] > braking and o[1:] == (TRIM, TRIM) for o in proxy.overrides), 3.0)
+        held = [o for o in proxy.overrides if o[0] < braking - 0.01][-1]
+        ramp = [o for o in proxy.overrides if o[0] >= braking - 0.01]
+        ramp = [held, *ramp[:next(i for i, o in enumerate(ramp) if o[1:] == (TRIM, TRIM)) + 1]]
+        took = ramp[-1][0] - ramp[0][0]
+        v0 = (max(held[1], held[2]) - TRIM) / 500.0 * p.robot.max_wheel_rad_s * p.robot.wheel_radius_m
+        largest = max(max(abs(a[1] - b[1]), abs(a[2] - b[2])) for a, b in itertools.pairwise(ramp))
+        stop_s, stop_m = stopping(side, t0)
+        FIGURES.append(f"stale demand in AUTO (proxy drops SERVO_OUTPUT_RAW): braking {1000 * (braking - last):.0f} ms "
+                       f"after the last one forwarded; {v0:.2f} m/s to trim in {1000 * took:.0f} ms over "
+                       f"{len(ramp) - 1} overrides (largest step {largest} us); rover still {stop_s:.2f} s / "
+                       f"{stop_m:.2f} m after the drop")
+        assert p.demand.timeout_s - 0.05 <= braking - last <= p.demand.timeout_s + 0.25
+        assert all(b[1] <= a[1] and b[2] <= a[2] for a, b in itertools.pairwise(ramp))  # never back up
+        # One period of the limits per override (linear and angular deceleration, as tests/test_drivers.py).
+        lim, robot = p.limits, p.robot
+        wheel = (lim.max_linear_decel_m_s2 + lim.max_angular_accel_rad_s2 * robot.track_width_m / 2.0) * period_s
+        assert largest <= 500.0 * wheel / robot.wheel_radius_m / robot.max_wheel_rad_s + 1.0
+        assert took >= v0 / lim.max_linear_decel_m_s2 - 2 * period_s  # a ramp, not a step
+        assert any(abs(m.servo5_raw - TRIM) > 100 for m in mon.of("SERVO_OUTPUT_RAW", braking))  # it still drives
+    finally:
+        tidy_up(side, proxy)

@@ -127,6 +127,20 @@ def test_scenario_reboot_and_link_silence() -> None:
     assert emu.counters["tx_dropped_silence"] > 0
 
 
+def test_a_withheld_message_is_not_sent_while_the_rest_streams_on() -> None:
+    emu = Emulator(vehicle=VehicleConfig(start_armed=True), record_sent=True)
+    emu.withheld.add(mavlink.MAVLINK_MSG_ID_HEARTBEAT)  # the autopilot's heartbeat silent, nothing else
+    for _ in range(300):
+        emu.step(0.01)
+    kinds = {m.get_type() for _, m in emu.sent_log or []}
+    assert "HEARTBEAT" not in kinds and "ATTITUDE" in kinds
+    assert emu.counters["tx_withheld"] == 4  # at 0, 1, 2 and 3 s: built as always, not sent
+    emu.withheld.clear()
+    for _ in range(100):
+        emu.step(0.01)
+    assert any(m.get_type() == "HEARTBEAT" for _, m in emu.sent_log or [])
+
+
 def test_corrupted_inbound_datagrams_are_counted_not_obeyed() -> None:
     emu = Emulator(
         vehicle=VehicleConfig(start_armed=True), faults=FaultConfig(inbound=LinkFaults(corrupt_rate=1.0))
