@@ -8,7 +8,7 @@ steps of it:
 
 - predict: filterpy's predict with F (models.motion's Jacobian), Q = models.process_noise and, as its
   control input, what the exact arc adds to F x (B = I, u = fx(x) - F x): x becomes fx(x), P becomes F P F' + Q;
-- update: filterpy's update with H = models.H_jacobian and z - h(x) + H x as the measurement: its
+- update: filterpy's update with H from models.measurement and z - h(x) + H x as the measurement: its
   innovation z - H x is then the model's z - h(x) (models.residual: the heading's wrapped); its gain,
   Joseph's form for P. Any of the measurement rows (the wheels' two, the gyro's one, the three at once).
 
@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from rover_bridge.estimate.models import N_STATES, H_jacobian, Mat, Vec, hx, motion, process_noise, residual
+from rover_bridge.estimate.models import N_STATES, Mat, Vec, measurement, motion, process_noise, residual
 
 
 def small_inverse(S: Mat) -> Mat:
@@ -74,8 +74,8 @@ class ArcKalmanFilter(KalmanFilter):  # type: ignore[misc]  # filterpy has no ty
 
     def linearise(self, wheels: bool, gyro: bool) -> tuple[Mat, Vec]:
         """(H, h(x)) of those rows at the state: what update_rows takes, for a caller that gates on them first."""
-        x = self.x
-        return H_jacobian(x, self.track_width_m, wheels, gyro), hx(x, self.track_width_m, wheels, gyro)
+        h, H = measurement(self.x, self.track_width_m, wheels, gyro)
+        return H, h
 
     def update_rows(self, z: Vec, R: Mat, wheels: bool, gyro: bool, consider: int | None = None,
                     linearised: tuple[Mat, Vec] | None = None) -> None:

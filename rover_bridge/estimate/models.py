@@ -209,25 +209,30 @@ def process_noise(x: Vec | Floats, dt_s: float, learn_geometry: bool = True) -> 
 
 # ---------------------------------------------------------------- measurements
 
-def hx(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> Vec:
-    """Predicted z: the wheels' [speed, heading] (if `wheels`), then the gyro's rate (if `gyro`)."""
+def measurement(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> tuple[Vec, Mat]:
+    """Measurement model and its Jacobian, (hx, H): the wheels' [speed, heading] (if `wheels`), then the gyro's
+    rate (if `gyro`)."""
     _, _, yaw, v, w, bias, kt, q, wheel_yaw = x.tolist()
-    z: list[float] = [wheel_rates_of(v, w, kt, q, track_width_m)[0], yaw + wheel_yaw] if wheels else []
+    H = np.zeros((2 * wheels + gyro, N_STATES))
+    z: list[float] = []
+    if wheels:
+        z += [wheel_rates_of(v, w, kt, q, track_width_m)[0], yaw + wheel_yaw]
+        H[0, IV], H[0, IW], H[0, IKT], H[0, IKR] = wheel_rate_partials(v, w, kt, q, track_width_m)[0]
+        H[1, IYAW] = H[1, IWY] = 1.0
     if gyro:
         z.append(w + bias)
-    return np.array(z)
+        H[-1, IW] = H[-1, IB] = 1.0
+    return np.array(z), H
+
+
+def hx(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> Vec:
+    """Predicted z (measurement)."""
+    return measurement(x, track_width_m, wheels, gyro)[0]
 
 
 def H_jacobian(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> Mat:
-    """d hx / d x."""
-    H = np.zeros((2 * wheels + gyro, N_STATES))
-    if wheels:
-        H[0, IV], H[0, IW], H[0, IKT], H[0, IKR] = wheel_rate_partials(float(x[IV]), float(x[IW]), float(x[IKT]),
-                                                                       float(x[IKR]), track_width_m)[0]
-        H[1, IYAW] = H[1, IWY] = 1.0
-    if gyro:
-        H[-1, IW] = H[-1, IB] = 1.0
-    return H
+    """d hx / d x (measurement)."""
+    return measurement(x, track_width_m, wheels, gyro)[1]
 
 
 def residual(z: Vec, h: Vec) -> Vec:
