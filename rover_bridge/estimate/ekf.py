@@ -211,8 +211,9 @@ class WheelGyroEKF:
         t_s, without changing the filter. The pose moves on for at most EXTRAPOLATE_MAX_S past the last
         measurement (a silent link may be a rebooting autopilot whose motors stopped; models.ahead); the
         covariance keeps growing. A look-ahead for publishing, not a step of the filter: F P F' + Q with the
-        same F and Q filterpy's predict takes. (A gyro sample waiting for the wheel reading of its instant, a
-        few ms, shows in the next one.)"""
+        same F and Q filterpy's predict takes, on all nine states (F's first rows are zero past the fifth column:
+        the block is its own; whole arrays cost half what views of them do). (A gyro sample waiting for the
+        wheel reading of its instant, a few ms, shows in the next one.)"""
         if not PUBLISHED <= block <= N_STATES:  # the motion model moves the first five: a smaller block is not one
             raise ValueError(f"block must be {PUBLISHED} to {N_STATES} states, got {block}")
         kf = self._kf
@@ -223,8 +224,6 @@ class WheelGyroEKF:
             if dt > MAX_PREDICT_STEP_S:  # one step standing for several (predict_to's sub-steps)
                 Q = Q * (dt / MAX_PREDICT_STEP_S)
             x, F = self._ahead(x, dt)
-            # All nine states: F's first rows are zero beyond the first five columns, so the block is the
-            # block's own F P F', and whole (contiguous) arrays cost half what their views do.
             P = F.dot(P).dot(F.T) + Q
         return x.tolist(), P[:block, :block].tolist()
 
@@ -319,11 +318,9 @@ class WheelGyroEKF:
             self._unlearn_bias(x, P)
         P[IWY, IWY] = j.heading_var  # slip, or the wheels not trusted: their heading error is free
         self._heading_jump(x, P)
-        # The update's linearisation (with a waiting gyro sample's row), computed once: its speed row gates.
-        H, h = linearised = kf.linearise(True, self._pending_gyro is not None)
+        H, h = linearised = kf.linearise(True, self._pending_gyro is not None)  # the update's: its speed row gates
         y = j.z_v - float(h[0])
-        speed_row = H[0]
-        d2 = y * y / (float(speed_row.dot(P).dot(speed_row)) + j.r_v)
+        d2 = y * y / (float(H[0].dot(P).dot(H[0])) + j.r_v)
         accepted = self._gate(WHEELS, d2)
         if accepted:
             self._update((j.z_v, j.r_v), not j.stationary and float(P[IB, IB]) < BIAS_KNOWN_RAD_S ** 2, linearised)
