@@ -8,7 +8,7 @@ steps of it:
 
 - predict: filterpy's predict with F (models.motion's Jacobian), Q = models.process_noise and, as its
   control input, what the exact arc adds to F x (B = I, u = fx(x) - F x): x becomes fx(x), P becomes F P F' + Q;
-- update: filterpy's update with H = models.H_jacobian and z - h(x) + H x as the measurement: its
+- update: filterpy's update with H from models.measurement and z - h(x) + H x as the measurement: its
   innovation z - H x is then the model's z - h(x) (models.residual: the heading's wrapped); its gain,
   Joseph's form for P. Any of the measurement rows (the wheels' two, the gyro's one, the three at once).
 
@@ -29,22 +29,25 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from rover_bridge.estimate.models import N_STATES, H_jacobian, Mat, Vec, hx, motion, process_noise, residual
+from rover_bridge.estimate.models import N_STATES, Mat, Vec, measurement, motion, process_noise, residual
 
 
 def small_inverse(S: Mat) -> Mat:
-    """S^-1 for the 1 to 3 rows of an update, in closed form (numpy's inverse for more)."""
+    """S^-1 for the 1 to 3 rows of an update, in closed form (numpy's inverse for more). Built from floats in
+    one array: at 3 rows numpy's own inverse costs 2-3 times as much (its checks and the LAPACK call)."""
     n = len(S)
     if n == 1:
         return 1.0 / S  # type: ignore[no-any-return]
     if n == 2:
-        (a, b), (c, d) = S.tolist()
-        return np.array([[d, -b], [-c, a]]) / (a * d - b * c)  # type: ignore[no-any-return]
+        a, b, c, d = S.ravel().tolist()
+        det = a * d - b * c
+        return np.array((d / det, -b / det, -c / det, a / det)).reshape(2, 2)
     if n == 3:
-        (a, b, c), (d, e, f), (g, h, i) = S.tolist()
+        a, b, c, d, e, f, g, h, i = S.ravel().tolist()
         A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-        return np.array([[A, c * h - b * i, b * f - c * e], [B, a * i - c * g, c * d - a * f],  # type: ignore[no-any-return]
-                         [C, b * g - a * h, a * e - b * d]]) / (a * A + b * B + c * C)
+        det = a * A + b * B + c * C
+        return np.array((A / det, (c * h - b * i) / det, (b * f - c * e) / det, B / det, (a * i - c * g) / det,
+                         (c * d - a * f) / det, C / det, (b * g - a * h) / det, (a * e - b * d) / det)).reshape(3, 3)
     return np.linalg.inv(S).astype(np.float64)
 
 
@@ -67,25 +70,32 @@ class ArcKalmanFilter(KalmanFilter):  # type: ignore[misc]  # filterpy has no ty
         x_new, F = motion(x, dt_s, self.track_width_m)
         self.F = F
         self.Q = process_noise(x, dt_s, self.learn_geometry)
-        self.predict(u=x_new - F @ x)
+        self.predict(u=x_new - F.dot(x))
 
-    def update_rows(self, z: Vec, R: Mat, wheels: bool, gyro: bool, consider: int | None = None) -> None:
-        """The update of the wheels' [speed, heading] rows and/or the gyro's (models.hx).
+    def linearise(self, wheels: bool, gyro: bool) -> tuple[Mat, Vec]:
+        """(H, h(x)) of those rows at the state: what update_rows takes, for a caller that gates on them first."""
+        h, H = measurement(self.x, self.track_width_m, wheels, gyro)
+        return H, h
+
+    def update_rows(self, z: Vec, R: Mat, wheels: bool, gyro: bool, consider: int | None = None,
+                    linearised: tuple[Mat, Vec] | None = None) -> None:
+        """The update of the wheels' [speed, heading] rows and/or the gyro's (models.hx), linearised at the
+        state (`linearised`: linearise()'s, if the caller has it).
 
         `consider`: a state this update must not learn (a Schmidt "consider" state: its gain row is zero).
         filterpy's update has no such notion: after it, the state's value is put back, and its row and
         column of P become the Schmidt form's, (I - K H) P's column with its own variance unchanged (every
         other entry of Joseph's form is the same for both gains)."""
         x = self.x
-        H = H_jacobian(x, self.track_width_m, wheels, gyro)
+        H, h = linearised if linearised is not None else self.linearise(wheels, gyro)
         if consider is not None:
             value, column = float(x[consider]), self.P[:, consider].copy()
         self.dim_z = len(z)
         self.R = R
-        self.update(residual(z, hx(x, self.track_width_m, wheels, gyro)) + H @ x, H=H)
+        self.update(residual(z, h) + H.dot(x), H=H)
         if consider is not None:
             var = float(column[consider])
-            column -= self.K @ (H @ column)
+            column -= self.K.dot(H.dot(column))
             column[consider] = var
             self.x[consider] = value
             self.P[:, consider] = column

@@ -61,8 +61,6 @@ from rover_bridge.estimate.models import (
     ahead,
     process_noise,
     wheel_heading_noise,
-    wheel_rates,
-    wheel_rates_jacobian,
 )
 from rover_bridge.estimate.sampling import SampleCorrections
 from rover_bridge.estimate.wheel_judge import GEOMETRY_UNKNOWN, WheelInterval, WheelJudge
@@ -213,19 +211,21 @@ class WheelGyroEKF:
         t_s, without changing the filter. The pose moves on for at most EXTRAPOLATE_MAX_S past the last
         measurement (a silent link may be a rebooting autopilot whose motors stopped; models.ahead); the
         covariance keeps growing. A look-ahead for publishing, not a step of the filter: F P F' + Q with the
-        same F and Q filterpy's predict takes, on the block only. (A gyro sample waiting for the wheel
-        reading of its instant, a few ms, shows in the next one.)"""
+        same F and Q filterpy's predict takes, on all nine states (F's first rows are zero past the fifth column:
+        the block is its own; whole arrays cost half what views of them do). (A gyro sample waiting for the
+        wheel reading of its instant, a few ms, shows in the next one.)"""
         if not PUBLISHED <= block <= N_STATES:  # the motion model moves the first five: a smaller block is not one
             raise ValueError(f"block must be {PUBLISHED} to {N_STATES} states, got {block}")
         kf = self._kf
-        x, P = kf.x, kf.P[:block, :block]
+        x, P = kf.x, kf.P
         dt = self._lookahead_s(t_s)
         if dt > 0.0:
-            Q = process_noise(x, dt, kf.learn_geometry)[:block, :block] * max(1.0, dt / MAX_PREDICT_STEP_S)
+            Q = process_noise(x, dt, kf.learn_geometry)
+            if dt > MAX_PREDICT_STEP_S:  # one step standing for several (predict_to's sub-steps)
+                Q = Q * (dt / MAX_PREDICT_STEP_S)
             x, F = self._ahead(x, dt)
-            F = F[:block, :block]
-            P = F @ P @ F.T + Q
-        return x.tolist(), P.tolist()
+            P = F.dot(P).dot(F.T) + Q
+        return x.tolist(), P[:block, :block].tolist()
 
     def restart_motion(self, t_s: float, new_time_s: float | None = None) -> None:
         """After an autopilot reboot or a silence: continue from the pose published now, speeds unknown.
@@ -318,12 +318,12 @@ class WheelGyroEKF:
             self._unlearn_bias(x, P)
         P[IWY, IWY] = j.heading_var  # slip, or the wheels not trusted: their heading error is free
         self._heading_jump(x, P)
-        h = wheel_rates_jacobian(x, L)[0]
-        y = j.z_v - wheel_rates(x, L)[0]
-        d2 = y * y / (float(h @ P @ h) + j.r_v)
+        H, h = linearised = kf.linearise(True, self._pending_gyro is not None)  # the update's: its speed row gates
+        y = j.z_v - float(h[0])
+        d2 = y * y / (float(H[0].dot(P).dot(H[0])) + j.r_v)
         accepted = self._gate(WHEELS, d2)
         if accepted:
-            self._update((j.z_v, j.r_v), not j.stationary and float(P[IB, IB]) < BIAS_KNOWN_RAD_S ** 2)
+            self._update((j.z_v, j.r_v), not j.stationary and float(P[IB, IB]) < BIAS_KNOWN_RAD_S ** 2, linearised)
             x = kf.x
             q = float(x[IKR])
             missed_m = self.sampling.wheels(t_s, float(x[IV]), None if j.slip else
@@ -357,10 +357,11 @@ class WheelGyroEKF:
             self.heading_jumps += 1
             P[IWY, IWY] += y * y
 
-    def _update(self, wheels: tuple[float, float] | None, bias_known: bool) -> None:
+    def _update(self, wheels: tuple[float, float] | None, bias_known: bool,
+                linearised: tuple[Mat, Vec] | None = None) -> None:
         """One filterpy update of the waiting gyro sample (if any) and the wheels' (speed z, variance) with
         their heading (if given). `bias_known`: the bias is a consider state of this update (module
-        docstring; arc_ekf.ArcKalmanFilter.update_rows)."""
+        docstring; arc_ekf.ArcKalmanFilter.update_rows); `linearised`: those rows' (H, h(x)) if known."""
         kf = self._kf
         gyro = self._pending_gyro
         self._pending_gyro = None
@@ -374,7 +375,7 @@ class WheelGyroEKF:
             r.append(self._gyro_var)
         R = np.zeros((len(r), len(r)))
         R.flat[:: len(r) + 1] = r
-        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None, IB if bias_known else None)
+        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None, IB if bias_known else None, linearised)
         kf.x[IYAW] = wrap_angle(float(kf.x[IYAW]))
 
     # -- resets

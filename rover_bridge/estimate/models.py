@@ -119,8 +119,12 @@ def _geometry_factors(q: float) -> tuple[float, float, float, float]:
 def wheel_rates(x: Vec | Floats, track_width_m: float) -> tuple[float, float]:
     """(v, omega) the wheels read with the nominal geometry when the body moves at the state's (v, omega):
     the left and right surface speeds are (v -+ omega kt L / 2) / s_l,r."""
-    v, w, kt = float(x[IV]), float(x[IW]), float(x[IKT])
-    a, c, _, _ = _geometry_factors(float(x[IKR]))
+    return wheel_rates_of(float(x[IV]), float(x[IW]), float(x[IKT]), float(x[IKR]), track_width_m)
+
+
+def wheel_rates_of(v: float, w: float, kt: float, q: float, track_width_m: float) -> tuple[float, float]:
+    """wheel_rates of (v, omega, track scale, radius ratio) given as floats (a state already unpacked)."""
+    a, c, _, _ = _geometry_factors(q)
     return a * v + 0.25 * c * kt * w * track_width_m, c * v / track_width_m + a * kt * w
 
 
@@ -146,7 +150,7 @@ def wheel_rates_jacobian(x: Vec | Floats, track_width_m: float) -> Mat:
 def motion(x: Vec, dt_s: float, track_width_m: float) -> tuple[Vec, Mat]:
     """Motion model and its Jacobian, (fx, F): move along the arc of (v, omega) for dt_s; the wheels' heading
     error grows by what they make of the motion; everything else is constant."""
-    _, _, yaw, v, w, _, kt, q, _ = x.tolist()
+    px, py, yaw, v, w, bias, kt, q, wheel_yaw = x.tolist()
     ds, dyaw = v * dt_s, w * dt_s
     a, b = arc_factors(dyaw)
     da, db = _arc_derivatives(dyaw)
@@ -154,11 +158,8 @@ def motion(x: Vec, dt_s: float, track_width_m: float) -> tuple[Vec, Mat]:
     fwd, left = ds * a, ds * b
     dfwd, dleft = ds * da * dt_s, ds * db * dt_s  # d/domega: dyaw = omega dt
     (_, _, _, _), (r_v, r_w, r_kt, r_kr) = wheel_rate_partials(v, w, kt, q, track_width_m)
-    out = x.copy()
-    out[IX] += c * fwd - s * left
-    out[IY] += s * fwd + c * left
-    out[IYAW] = wrap_angle(yaw + dyaw)
-    out[IWY] += (wheel_rates(x, track_width_m)[1] - w) * dt_s
+    out = np.array((px + (c * fwd - s * left), py + (s * fwd + c * left), wrap_angle(yaw + dyaw), v, w, bias, kt, q,
+                    wheel_yaw + (wheel_rates_of(v, w, kt, q, track_width_m)[1] - w) * dt_s))
     F = _IDENTITY.copy()
     F[IX, IYAW], F[IY, IYAW] = -s * fwd - c * left, c * fwd - s * left
     F[IX, IV], F[IY, IV] = dt_s * (c * a - s * b), dt_s * (s * a + c * b)
@@ -199,34 +200,39 @@ def process_noise(x: Vec | Floats, dt_s: float, learn_geometry: bool = True) -> 
     dist_m = abs(float(x[IV])) * dt_s
     turn_rad = abs(float(x[IW])) * dt_s
     pos = Q_POS_PER_M * dist_m
-    Q = np.zeros((N_STATES, N_STATES))
-    Q.flat[:: N_STATES + 1] = (pos, pos, Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad, Q_V * dt_s, Q_OMEGA * dt_s,
-                               Q_BIAS * dt_s, q_geometry, q_geometry,
-                               Q_WHEEL_YAW_PER_M * dist_m + Q_WHEEL_YAW_PER_RAD * turn_rad)
-    return Q
+    Q = np.zeros(N_STATES * N_STATES)
+    Q[:: N_STATES + 1] = (pos, pos, Q_YAW_PER_M * dist_m + Q_YAW_PER_RAD * turn_rad, Q_V * dt_s, Q_OMEGA * dt_s,
+                          Q_BIAS * dt_s, q_geometry, q_geometry,
+                          Q_WHEEL_YAW_PER_M * dist_m + Q_WHEEL_YAW_PER_RAD * turn_rad)
+    return Q.reshape(N_STATES, N_STATES)
 
 
 # ---------------------------------------------------------------- measurements
 
-def hx(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> Vec:
-    """Predicted z: the wheels' [speed, heading] (if `wheels`), then the gyro's rate (if `gyro`)."""
+def measurement(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> tuple[Vec, Mat]:
+    """Measurement model and its Jacobian, (hx, H): the wheels' [speed, heading] (if `wheels`), then the gyro's
+    rate (if `gyro`)."""
+    _, _, yaw, v, w, bias, kt, q, wheel_yaw = x.tolist()
+    H = np.zeros((2 * wheels + gyro, N_STATES))
     z: list[float] = []
     if wheels:
-        z += [wheel_rates(x, track_width_m)[0], float(x[IYAW]) + float(x[IWY])]
+        z += [wheel_rates_of(v, w, kt, q, track_width_m)[0], yaw + wheel_yaw]
+        H[0, IV], H[0, IW], H[0, IKT], H[0, IKR] = wheel_rate_partials(v, w, kt, q, track_width_m)[0]
+        H[1, IYAW] = H[1, IWY] = 1.0
     if gyro:
-        z.append(float(x[IW]) + float(x[IB]))
-    return np.array(z)
+        z.append(w + bias)
+        H[-1, IW] = H[-1, IB] = 1.0
+    return np.array(z), H
+
+
+def hx(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> Vec:
+    """Predicted z (measurement)."""
+    return measurement(x, track_width_m, wheels, gyro)[0]
 
 
 def H_jacobian(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> Mat:
-    """d hx / d x."""
-    H = np.zeros((2 * wheels + gyro, N_STATES))
-    if wheels:
-        H[0] = wheel_rates_jacobian(x, track_width_m)[0]
-        H[1, IYAW] = H[1, IWY] = 1.0
-    if gyro:
-        H[-1, IW] = H[-1, IB] = 1.0
-    return H
+    """d hx / d x (measurement)."""
+    return measurement(x, track_width_m, wheels, gyro)[1]
 
 
 def residual(z: Vec, h: Vec) -> Vec:
