@@ -316,6 +316,8 @@ class WheelGyroEKF:
         j = self.judge.judge(t_s, WheelInterval(d_left_m, d_right_m, dt_s, gyro_omega_rad_s, gyro_spread_rad_s), x, P)
         if trusted and not self.judge.trusted:
             self._unlearn_bias(x, P)
+        if j.slip or j.step:  # a step of the yaw rate is not a ramp: publishing does not extrapolate it
+            self.sampling.alpha_rad_s2 = 0.0
         P[IWY, IWY] = j.heading_var  # slip, or the wheels not trusted: their heading error is free
         self._heading_jump(x, P)
         h = wheel_rates_jacobian(x, L)[0]
