@@ -17,9 +17,12 @@ linearised at the state). Around it, what a filter needs in a sampled, imperfect
   then the likelier culprit). The wheels' heading row is never refused: a jump in it is a lost
   reference, and their heading error takes it (_heading_jump).
 - Wheel intervals are judged first (wheel_judge.py: standstill, slip, whether the wheels' heading is
-  trusted). A gyro bias known from rest is not learnt from wheels in motion: a Schmidt "consider"
-  state for that update (filterpy's update has no such notion: a correction after it, see
-  arc_ekf.ArcKalmanFilter.update_rows).
+  trusted). Trusted wheels teach the gyro its bias in motion too (a bias taught by wheels later found
+  disagreeing is unlearnt: _unlearn_bias). Not a Schmidt "consider" bias once known from rest: a
+  bias the filter may not correct leaves the yaw and the wheels' heading error correlated through it,
+  and after the wheels were distrusted their heading row moved the yaw by up to 1.8 times its innovation
+  (one count's quantisation, 0.06 deg, amplified: accuracy.py slip seed 7 lost 0.35 deg in the 8 s after
+  the wheels were trusted again).
 - Trapezoid corrections of yaw and distance between samples (sampling.py).
 - Publishing extrapolates at most EXTRAPOLATE_MAX_S past the last measurement; restart_motion
   continues from that held pose.
@@ -68,7 +71,6 @@ from rover_bridge.estimate.sampling import SampleCorrections
 from rover_bridge.estimate.wheel_judge import GEOMETRY_UNKNOWN, WheelInterval, WheelJudge
 from rover_bridge.odometry import Pose2D, wrap_angle
 
-BIAS_KNOWN_RAD_S = 0.002  # a bias this well known is not learnt from wheels in motion (module docstring)
 MAX_CONSECUTIVE_REJECTS = 5
 MAX_PREDICT_STEP_S = 0.1
 # Longer gaps are not integrated (predict_to): at most this / MAX_PREDICT_STEP_S sub-steps per call.
@@ -294,7 +296,7 @@ class WheelGyroEKF:
     def _flush(self) -> None:
         """Fuse a waiting gyro sample alone."""
         if self._pending_gyro is not None:
-            self._update(None, False)
+            self._update(None)
 
     def update_wheels(self, t_s: float, d_left_m: float, d_right_m: float, dt_s: float,
                       gyro_omega_rad_s: float | None = None, gyro_spread_rad_s: float = 0.0) -> WheelUpdate:
@@ -325,7 +327,7 @@ class WheelGyroEKF:
         d2 = y * y / (float(h @ P @ h) + j.r_v)
         accepted = self._gate(WHEELS, d2)
         if accepted:
-            self._update((j.z_v, j.r_v), not j.stationary and float(P[IB, IB]) < BIAS_KNOWN_RAD_S ** 2)
+            self._update((j.z_v, j.r_v))
             x = kf.x
             q = float(x[IKR])
             missed_m = self.sampling.wheels(t_s, float(x[IV]), None if j.slip else
@@ -359,10 +361,9 @@ class WheelGyroEKF:
             self.heading_jumps += 1
             P[IWY, IWY] += y * y
 
-    def _update(self, wheels: tuple[float, float] | None, bias_known: bool) -> None:
+    def _update(self, wheels: tuple[float, float] | None) -> None:
         """One filterpy update of the waiting gyro sample (if any) and the wheels' (speed z, variance) with
-        their heading (if given). `bias_known`: the bias is a consider state of this update (module
-        docstring; arc_ekf.ArcKalmanFilter.update_rows)."""
+        their heading (if given)."""
         kf = self._kf
         gyro = self._pending_gyro
         self._pending_gyro = None
@@ -376,7 +377,7 @@ class WheelGyroEKF:
             r.append(self._gyro_var)
         R = np.zeros((len(r), len(r)))
         R.flat[:: len(r) + 1] = r
-        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None, IB if bias_known else None)
+        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None)
         kf.x[IYAW] = wrap_angle(float(kf.x[IYAW]))
 
     # -- resets
