@@ -18,11 +18,11 @@ linearised at the state). Around it, what a filter needs in a sampled, imperfect
   reference, and their heading error takes it (_heading_jump).
 - Wheel intervals are judged first (wheel_judge.py: standstill, slip, whether the wheels' heading is
   trusted). Trusted wheels teach the gyro its bias in motion too (a bias taught by wheels later found
-  disagreeing is unlearnt: _unlearn_bias). Not a Schmidt "consider" bias once known from rest: a
-  bias the filter may not correct leaves the yaw and the wheels' heading error correlated through it,
-  and after the wheels were distrusted their heading row moved the yaw by up to 1.8 times its innovation
-  (one count's quantisation, 0.06 deg, amplified: accuracy.py slip seed 7 lost 0.35 deg in the 8 s after
-  the wheels were trusted again).
+  disagreeing is unlearnt, and the turn the yaw followed meanwhile: _unlearn). Not a Schmidt "consider"
+  bias once known from rest: a bias the filter may not correct leaves the yaw and the wheels' heading
+  error correlated through it, and after the wheels were distrusted their heading row moved the yaw by
+  up to 1.8 times its innovation (one count, 0.06 deg, amplified: accuracy.py slip seed 7 lost 0.35 deg
+  in the 8 s after the wheels were trusted again).
 - Trapezoid corrections of yaw and distance between samples (sampling.py).
 - Publishing extrapolates at most EXTRAPOLATE_MAX_S past the last measurement; restart_motion
   continues from that held pose.
@@ -120,7 +120,8 @@ class WheelGyroEKF:
         self._gate2 = self.noise.gate_sigma ** 2
         self.rejects_in_row = {WHEELS: 0, GYRO: 0}
         self.predict_steps = 0  # prediction sub-steps so far: the work the filter did (bounded per call)
-        self._sound_bias = (0.0, SIGMA0_BIAS ** 2)  # learnt at rest or with agreeing wheels (_unlearn_bias)
+        # learnt at rest or with agreeing wheels (_unlearn); the newest becomes sound a checkpoint later
+        self._sound_bias = self._newest_sound_bias = (0.0, SIGMA0_BIAS ** 2)
         self.heading_jumps = 0  # times the wheels' heading jumped beyond the gate (see _heading_jump)
         geometry = GEOMETRY_UNKNOWN if calibrate else None  # None: the profile's, exactly
         start = pose if pose is not None else Pose2D()
@@ -317,7 +318,7 @@ class WheelGyroEKF:
         trusted = self.judge.trusted
         j = self.judge.judge(t_s, WheelInterval(d_left_m, d_right_m, dt_s, gyro_omega_rad_s, gyro_spread_rad_s), x, P)
         if trusted and not self.judge.trusted:
-            self._unlearn_bias(x, P)
+            self._unlearn(x, P)
         if j.slip or j.step:  # a step of the yaw rate is not a ramp: publishing does not extrapolate it
             self.sampling.alpha_rad_s2 = 0.0
         P[IWY, IWY] = j.heading_var  # slip, or the wheels not trusted: their heading error is free
@@ -339,15 +340,16 @@ class WheelGyroEKF:
             self._flush()
             self.sampling.wheels_refused()
         if j.stationary or self.judge.agreed:
-            self._sound_bias = (float(kf.x[IB]), float(kf.P[IB, IB]))
+            self._sound_bias, self._newest_sound_bias = self._newest_sound_bias, (float(kf.x[IB]), float(kf.P[IB, IB]))
         return WheelUpdate(accepted, j.slip, j.stationary, j.slip_d2, d2)
 
-    def _unlearn_bias(self, x: Vec, P: Mat) -> None:
-        """The wheels now disagree with the gyro: the bias they taught it since it was last sound (driving off
-        without a standstill on wheels off their geometry) was their error. Back to that value and variance,
-        uncorrelated (P stays positive semi-definite). `accuracy.py --wheels --moving`, miscalibrated seed 1:
-        129 mm, 7.4 deg without this; 16 mm, 1.4 deg with it."""
-        x[IB], var = self._sound_bias
+    def _unlearn(self, x: Vec, P: Mat) -> None:
+        """The wheels now disagree with the gyro: the bias they taught since it was last sound (a checkpoint
+        before the newest: the window that agreed last can hold the start of the disagreement) was their error,
+        back to it, uncorrelated; the yaw gives back their turn beyond the gyro's in the disagreeing window,
+        which it followed (their heading error takes it). Notes: /work/notes/acc30.md, ekf30.md."""
+        turn, (x[IB], var) = self.judge.distrust_turn_rad, self._sound_bias
+        x[IYAW], x[IWY] = wrap_angle(float(x[IYAW]) - turn), x[IWY] + turn
         P[IB, :] = P[:, IB] = 0.0
         P[IB, IB] = var
 

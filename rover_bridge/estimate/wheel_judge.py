@@ -92,6 +92,7 @@ class WheelJudge:
         self.window = ConsistencyWindow()
         self.trusted = True  # the wheels' heading: trusted, or free while they disagree with the gyro
         self.agreed = False  # the last interval completed agreeing windows (what the filter learnt is sound)
+        self.distrust_turn_rad = 0.0  # the wheels' turn beyond the gyro's in the window that found them disagreeing
         self._may_trust = True  # a standstill since the last disagreement
         self._prev: tuple[float, float, float] | None = None  # the last interval's (mean speed, variance, dt)
         self.accel_m_s2 = 0.0  # from the last two intervals' mean speeds (publishing extrapolates with it)
@@ -204,6 +205,8 @@ class WheelJudge:
                         geometry_rad)
         agree = self.window.agree(float(P[IB, IB]), self._reading_var)
         if agree is False:
+            if self.trusted:
+                self.distrust_turn_rad = self.window.disagreement_rad
             self.trusted = self._may_trust = False
         elif agree:
             self.agreed = True
