@@ -130,9 +130,10 @@ class WheelJudge:
             self.window.clear()
             z_v, r_v = self._slip_speed(w, x, r_v)
             return WheelJudgement(z_v, r_v, True, False, d2, max(self._distrust_var(P), slip_var))
-        self._check_agreement(w, y * w.dt_s, x, P)
-        if step_d2 > STEP_SIGMA ** 2:
+        if step_d2 > STEP_SIGMA ** 2:  # the yaw did not follow the wheels here: nor does the window
+            self.window.clear()
             return WheelJudgement(z_v, r_end, False, False, d2, max(self._distrust_var(P), slip_var), True)
+        self._check_agreement(w, y * w.dt_s, x, P)
         return WheelJudgement(z_v, r_end, False, False, d2, self._distrust_var(P))
 
     def _speed_at_end(self, mean_v: float, r_v: float, dt_s: float) -> tuple[float, float]:
