@@ -116,6 +116,19 @@ def test_a_step_of_the_gyros_rate_the_wheels_did_not_follow_frees_their_heading_
     assert j.heading_var >= P[IWY, IWY] + (0.4 * DT) ** 2  # the turn they missed, at least
 
 
+def test_a_step_is_not_held_against_the_wheels_by_the_consistency_window() -> None:
+    # A slip edge's interval is a step (its heading already freed): agreeing wheels around it stay trusted,
+    # and it is not part of what the yaw gives back if they are distrusted later.
+    judge = WheelJudge(L, NOISE)
+    x, P = _state(v=0.8)
+    t = 0.0
+    for k in range(60):
+        t += DT
+        gyro = 0.3 if k in (20, 21) else 0.0  # the wheels miss 0.3 rad/s for two intervals (a slip's edge)
+        j = judge.judge(t, WheelInterval(0.8 * DT, 0.8 * DT, DT, gyro), x, P)
+        assert j.step == (k in (20, 21)) and not j.slip
+    assert judge.trusted
+
 def test_a_turn_the_wheels_follow_is_not_a_step() -> None:
     # The same change of the gyro's rate with the wheels turning as the body does (a turn through the
     # motors' lag): nothing is freed.
