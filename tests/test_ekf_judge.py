@@ -104,6 +104,41 @@ def test_the_slip_test_allows_the_gyros_noise_bias_and_spread() -> None:
     assert judge.slip_d2(0.6, 1e-6, 0.51, x, P, gyro_spread_rad_s=0.1) < d2  # a rate that changed within
 
 
+def test_a_step_of_the_gyros_rate_the_wheels_did_not_follow_frees_their_heading_but_keeps_their_speed() -> None:
+    # Slip starting within the interval: the gyro's rate jumps from 0 to 0.8 rad/s (its samples' mean 0.4,
+    # their spread 0.4), the wheels still read a straight 0.8 m/s. The spread hides it from the slip test;
+    # the wheels' heading must not hold the yaw through it.
+    judge = WheelJudge(L, NOISE)
+    x, P = _state(v=0.8)
+    j = judge.judge(DT, WheelInterval(0.8 * DT, 0.8 * DT, DT, 0.4, 0.4), x, P)
+    assert not j.slip and j.step
+    assert j.z_v == pytest.approx(0.8)  # the speed is the wheels'
+    assert j.heading_var >= P[IWY, IWY] + (0.4 * DT) ** 2  # the turn they missed, at least
+
+
+def test_a_step_is_not_held_against_the_wheels_by_the_consistency_window() -> None:
+    # A slip edge's interval is a step (its heading already freed): agreeing wheels around it stay trusted,
+    # and it is not part of what the yaw gives back if they are distrusted later.
+    judge = WheelJudge(L, NOISE)
+    x, P = _state(v=0.8)
+    t = 0.0
+    for k in range(60):
+        t += DT
+        gyro = 0.3 if k in (20, 21) else 0.0  # the wheels miss 0.3 rad/s for two intervals (a slip's edge)
+        j = judge.judge(t, WheelInterval(0.8 * DT, 0.8 * DT, DT, gyro), x, P)
+        assert j.step == (k in (20, 21)) and not j.slip
+    assert judge.trusted
+
+def test_a_turn_the_wheels_follow_is_not_a_step() -> None:
+    # The same change of the gyro's rate with the wheels turning as the body does (a turn through the
+    # motors' lag): nothing is freed.
+    judge = WheelJudge(L, NOISE)
+    x, P = _state(v=0.8)
+    j = judge.judge(DT, WheelInterval((0.8 - 0.5 * 0.38 * L) * DT, (0.8 + 0.5 * 0.38 * L) * DT, DT, 0.4, 0.4), x, P)
+    assert not j.slip and not j.step
+    assert j.heading_var == P[IWY, IWY]
+
+
 # ---------------------------------------------------------------- consistency
 
 def test_a_window_judges_only_a_whole_window_with_motion_in_it() -> None:

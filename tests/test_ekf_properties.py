@@ -1,9 +1,8 @@
 """Properties of the filter's math (Hypothesis): the models against independent forms of the same physics,
-the Jacobians against finite differences, the consider update's invariants, the consistency window's
+the Jacobians against finite differences, the consistency window's
 verdicts and the trapezoid corrections against exact integrals."""
 
 # Kalman-filter notation (P, H, R) reads better than pep8 names here.
-# ruff: noqa: N806
 
 from __future__ import annotations
 
@@ -13,7 +12,6 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rover_bridge.estimate.arc_ekf import ArcKalmanFilter
 from rover_bridge.estimate.consistency import AGREE_SIGMA, MIN_SPAN_S, ConsistencyWindow
 from rover_bridge.estimate.models import (
     IB,
@@ -110,30 +108,6 @@ def test_two_steps_along_the_arc_are_one_step(x: np.ndarray, dt1_s: float, dt2_s
     chord = math.hypot(one[IX] - x[IX], one[IY] - x[IY])
     expected = abs(dist) if abs(turn) < 1e-9 else abs(2.0 * dist / turn * math.sin(0.5 * turn))
     assert math.isclose(chord, expected, rel_tol=1e-6, abs_tol=1e-9)
-
-
-# ---------------------------------------------------------------- the consider update
-
-@PROPS
-@given(states(), st.integers(0, 2**32 - 1), st.sampled_from([(True, True), (True, False), (False, True)]))
-def test_a_considered_state_keeps_its_value_and_variance_and_p_stays_a_covariance(
-        x: np.ndarray, seed: int, rows: tuple[bool, bool]) -> None:
-    rng = np.random.default_rng(seed)
-    A = rng.normal(0.0, 0.1, (N_STATES, N_STATES))
-    P = A @ A.T + np.diag(rng.uniform(1e-4, 1e-2, N_STATES))
-    wheels, gyro = rows
-    z = hx(x, L, wheels, gyro) + rng.normal(0.0, 0.05, 2 * wheels + gyro)
-    kf = ArcKalmanFilter(L, learn_geometry=True)
-    kf.x, kf.P = x.copy(), P.copy()
-    kf.update_rows(z, np.diag(rng.uniform(1e-5, 1e-3, len(z))), wheels, gyro, consider=IB)
-    assert kf.x[IB] == x[IB] and kf.P[IB, IB] == P[IB, IB]
-    np.testing.assert_allclose(kf.P, kf.P.T, atol=1e-15)
-    assert np.linalg.eigvalsh(kf.P).min() > -1e-12
-    # never more certain than the full update, which also learns the considered state
-    full = ArcKalmanFilter(L, learn_geometry=True)
-    full.x, full.P = x.copy(), P.copy()
-    full.update_rows(z, kf.R, wheels, gyro)
-    assert np.linalg.eigvalsh(kf.P - full.P).min() > -1e-12
 
 
 # ---------------------------------------------------------------- consistency window

@@ -77,26 +77,12 @@ class ArcKalmanFilter(KalmanFilter):  # type: ignore[misc]  # filterpy has no ty
         h, H = measurement(self.x, self.track_width_m, wheels, gyro)
         return H, h
 
-    def update_rows(self, z: Vec, R: Mat, wheels: bool, gyro: bool, consider: int | None = None,
+    def update_rows(self, z: Vec, R: Mat, wheels: bool, gyro: bool,
                     linearised: tuple[Mat, Vec] | None = None) -> None:
         """The update of the wheels' [speed, heading] rows and/or the gyro's (models.hx), linearised at the
-        state (`linearised`: linearise()'s, if the caller has it).
-
-        `consider`: a state this update must not learn (a Schmidt "consider" state: its gain row is zero).
-        filterpy's update has no such notion: after it, the state's value is put back, and its row and
-        column of P become the Schmidt form's, (I - K H) P's column with its own variance unchanged (every
-        other entry of Joseph's form is the same for both gains)."""
+        state (`linearised`: linearise()'s, if the caller has it)."""
         x = self.x
         H, h = linearised if linearised is not None else self.linearise(wheels, gyro)
-        if consider is not None:
-            value, column = float(x[consider]), self.P[:, consider].copy()
         self.dim_z = len(z)
         self.R = R
         self.update(residual(z, h) + H.dot(x), H=H)
-        if consider is not None:
-            var = float(column[consider])
-            column -= self.K.dot(H.dot(column))
-            column[consider] = var
-            self.x[consider] = value
-            self.P[:, consider] = column
-            self.P[consider, :] = column

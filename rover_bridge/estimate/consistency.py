@@ -36,6 +36,7 @@ class ConsistencyWindow:
         self._intervals: deque[tuple[float, float, float, float, float, float]] = deque()
         self._sums = [0.0] * 6
         self._agreed = 0  # windows in a row that agreed
+        self.disagreement_rad = 0.0  # the wheels' turn minus the gyro's over the last window that disagreed
 
     def clear(self) -> None:
         self._intervals.clear()
@@ -67,6 +68,7 @@ class ConsistencyWindow:
             return None
         var = 2.0 * reading_var + gyro_var + bias_var * span * span + geometry * geometry
         if d * d > AGREE_SIGMA ** 2 * var:
+            self.disagreement_rad = d
             self.clear()
             self._agreed = 0
             return False

@@ -17,9 +17,12 @@ linearised at the state). Around it, what a filter needs in a sampled, imperfect
   then the likelier culprit). The wheels' heading row is never refused: a jump in it is a lost
   reference, and their heading error takes it (_heading_jump).
 - Wheel intervals are judged first (wheel_judge.py: standstill, slip, whether the wheels' heading is
-  trusted). A gyro bias known from rest is not learnt from wheels in motion: a Schmidt "consider"
-  state for that update (filterpy's update has no such notion: a correction after it, see
-  arc_ekf.ArcKalmanFilter.update_rows).
+  trusted). Trusted wheels teach the gyro its bias in motion too (a bias taught by wheels later found
+  disagreeing is unlearnt, and the turn the yaw followed meanwhile: _unlearn). Not a Schmidt "consider"
+  bias once known from rest: a bias the filter may not correct leaves the yaw and the wheels' heading
+  error correlated through it, and after the wheels were distrusted their heading row moved the yaw by
+  up to 1.8 times its innovation (one count, 0.06 deg, amplified: accuracy.py slip seed 7 lost 0.35 deg
+  in the 8 s after the wheels were trusted again).
 - Trapezoid corrections of yaw and distance between samples (sampling.py).
 - Publishing extrapolates at most EXTRAPOLATE_MAX_S past the last measurement; restart_motion
   continues from that held pose.
@@ -66,7 +69,6 @@ from rover_bridge.estimate.sampling import SampleCorrections
 from rover_bridge.estimate.wheel_judge import GEOMETRY_UNKNOWN, WheelInterval, WheelJudge
 from rover_bridge.odometry import Pose2D, wrap_angle
 
-BIAS_KNOWN_RAD_S = 0.002  # a bias this well known is not learnt from wheels in motion (module docstring)
 MAX_CONSECUTIVE_REJECTS = 5
 MAX_PREDICT_STEP_S = 0.1
 # Longer gaps are not integrated (predict_to): at most this / MAX_PREDICT_STEP_S sub-steps per call.
@@ -74,8 +76,22 @@ MAX_PREDICT_GAP_S = 1.0
 EXTRAPOLATE_MAX_S = 0.2  # publishing: how far past the last measurement the pose may move
 COAST_S = 0.3  # a rover whose motors lost power stops within about this (distance = speed x this, 1 sigma)
 SAME_INSTANT_S = 1e-3
-GYRO = "gyro"
-WHEELS = "wheels"
+
+
+class Gate:
+    """One sensor's innovation gate: a squared Mahalanobis distance past gate_sigma^2 is refused, unless it
+    is the MAX_CONSECUTIVE_REJECTS-th refusal in a row (the filter is then the likelier culprit)."""
+
+    def __init__(self, gate_sigma: float) -> None:
+        self._gate2 = gate_sigma ** 2
+        self.rejects_in_row = 0
+
+    def passes(self, d2: float) -> bool:
+        if d2 <= self._gate2 or self.rejects_in_row + 1 >= MAX_CONSECUTIVE_REJECTS:
+            self.rejects_in_row = 0
+            return True
+        self.rejects_in_row += 1
+        return False
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,9 +130,10 @@ class WheelGyroEKF:
         self._gyro_var = self.noise.gyro_noise_rad_s ** 2
         self._heading_var = wheel_heading_noise(self.track_width_m, self.noise)
         self._gate2 = self.noise.gate_sigma ** 2
-        self.rejects_in_row = {WHEELS: 0, GYRO: 0}
+        self.gyro_gate, self.wheels_gate = Gate(self.noise.gate_sigma), Gate(self.noise.gate_sigma)
         self.predict_steps = 0  # prediction sub-steps so far: the work the filter did (bounded per call)
-        self._sound_bias = (0.0, SIGMA0_BIAS ** 2)  # learnt at rest or with agreeing wheels (_unlearn_bias)
+        # learnt at rest or with agreeing wheels (_unlearn); the newest becomes sound a checkpoint later
+        self._sound_bias = self._newest_sound_bias = (0.0, SIGMA0_BIAS ** 2)
         self.heading_jumps = 0  # times the wheels' heading jumped beyond the gate (see _heading_jump)
         geometry = GEOMETRY_UNKNOWN if calibrate else None  # None: the profile's, exactly
         start = pose if pose is not None else Pose2D()
@@ -267,13 +284,6 @@ class WheelGyroEKF:
         P[IWY, IWY] = P[IYAW, IYAW]
 
     # -- updates
-    def _gate(self, sensor: str, d2: float) -> bool:
-        if d2 <= self._gate2 or self.rejects_in_row[sensor] + 1 >= MAX_CONSECUTIVE_REJECTS:
-            self.rejects_in_row[sensor] = 0
-            return True
-        self.rejects_in_row[sensor] += 1
-        return False
-
     def update_gyro(self, t_s: float, omega_rad_s: float) -> bool:
         """A gyro yaw rate (CCW +, rad/s) at t_s. False when it failed the gate (not fused). Fused with the
         next call: in one update with a wheel reading of the same instant, else alone (module docstring)."""
@@ -282,7 +292,7 @@ class WheelGyroEKF:
         x, P = self._kf.x, self._kf.P
         y = omega_rad_s - float(x[IW] + x[IB])
         S = float(P[IW, IW] + 2.0 * P[IW, IB] + P[IB, IB]) + self._gyro_var
-        if not (S > 0.0 and self._gate(GYRO, y * y / S)):  # S > 0 unless P is broken: never fused then
+        if not (S > 0.0 and self.gyro_gate.passes(y * y / S)):  # S > 0 unless P is broken: never fused then
             return False
         self._pending_gyro = (t_s, omega_rad_s)
         # At once: a wheel reading of this instant measured that turn.
@@ -294,7 +304,7 @@ class WheelGyroEKF:
     def _flush(self) -> None:
         """Fuse a waiting gyro sample alone."""
         if self._pending_gyro is not None:
-            self._update(None, False)
+            self._update(None)
 
     def update_wheels(self, t_s: float, d_left_m: float, d_right_m: float, dt_s: float,
                       gyro_omega_rad_s: float | None = None, gyro_spread_rad_s: float = 0.0) -> WheelUpdate:
@@ -315,15 +325,17 @@ class WheelGyroEKF:
         trusted = self.judge.trusted
         j = self.judge.judge(t_s, WheelInterval(d_left_m, d_right_m, dt_s, gyro_omega_rad_s, gyro_spread_rad_s), x, P)
         if trusted and not self.judge.trusted:
-            self._unlearn_bias(x, P)
+            self._unlearn(x, P)
+        if j.slip or j.step:  # a step of the yaw rate is not a ramp: publishing does not extrapolate it
+            self.sampling.alpha_rad_s2 = 0.0
         P[IWY, IWY] = j.heading_var  # slip, or the wheels not trusted: their heading error is free
         self._heading_jump(x, P)
         H, h = linearised = kf.linearise(True, self._pending_gyro is not None)  # the update's: its speed row gates
         y = j.z_v - float(h[0])
         d2 = y * y / (float(H[0].dot(P).dot(H[0])) + j.r_v)
-        accepted = self._gate(WHEELS, d2)
+        accepted = self.wheels_gate.passes(d2)
         if accepted:
-            self._update((j.z_v, j.r_v), not j.stationary and float(P[IB, IB]) < BIAS_KNOWN_RAD_S ** 2, linearised)
+            self._update((j.z_v, j.r_v), linearised)
             x = kf.x
             q = float(x[IKR])
             missed_m = self.sampling.wheels(t_s, float(x[IV]), None if j.slip else
@@ -335,15 +347,16 @@ class WheelGyroEKF:
             self._flush()
             self.sampling.wheels_refused()
         if j.stationary or self.judge.agreed:
-            self._sound_bias = (float(kf.x[IB]), float(kf.P[IB, IB]))
+            self._sound_bias, self._newest_sound_bias = self._newest_sound_bias, (float(kf.x[IB]), float(kf.P[IB, IB]))
         return WheelUpdate(accepted, j.slip, j.stationary, j.slip_d2, d2)
 
-    def _unlearn_bias(self, x: Vec, P: Mat) -> None:
-        """The wheels now disagree with the gyro: the bias they taught it since it was last sound (driving off
-        without a standstill on wheels off their geometry) was their error. Back to that value and variance,
-        uncorrelated (P stays positive semi-definite). `accuracy.py --wheels --moving`, miscalibrated seed 1:
-        129 mm, 7.4 deg without this; 16 mm, 1.4 deg with it."""
-        x[IB], var = self._sound_bias
+    def _unlearn(self, x: Vec, P: Mat) -> None:
+        """The wheels now disagree with the gyro: the bias they taught since it was last sound (a checkpoint
+        before the newest: the window that agreed last can hold the start of the disagreement) was their error,
+        back to it, uncorrelated; the yaw gives back their turn beyond the gyro's in the disagreeing window,
+        which it followed (their heading error takes it). Notes: /work/notes/acc30.md, ekf30.md."""
+        turn, (x[IB], var) = self.judge.distrust_turn_rad, self._sound_bias
+        x[IYAW], x[IWY] = wrap_angle(float(x[IYAW]) - turn), x[IWY] + turn
         P[IB, :] = P[:, IB] = 0.0
         P[IB, IB] = var
 
@@ -357,11 +370,9 @@ class WheelGyroEKF:
             self.heading_jumps += 1
             P[IWY, IWY] += y * y
 
-    def _update(self, wheels: tuple[float, float] | None, bias_known: bool,
-                linearised: tuple[Mat, Vec] | None = None) -> None:
+    def _update(self, wheels: tuple[float, float] | None, linearised: tuple[Mat, Vec] | None = None) -> None:
         """One filterpy update of the waiting gyro sample (if any) and the wheels' (speed z, variance) with
-        their heading (if given). `bias_known`: the bias is a consider state of this update (module
-        docstring; arc_ekf.ArcKalmanFilter.update_rows); `linearised`: those rows' (H, h(x)) if known."""
+        their heading (if given); `linearised`: those rows' (H, h(x)) if already known."""
         kf = self._kf
         gyro = self._pending_gyro
         self._pending_gyro = None
@@ -375,7 +386,7 @@ class WheelGyroEKF:
             r.append(self._gyro_var)
         R = np.zeros((len(r), len(r)))
         R.flat[:: len(r) + 1] = r
-        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None, IB if bias_known else None, linearised)
+        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None, linearised)
         kf.x[IYAW] = wrap_angle(float(kf.x[IYAW]))
 
     # -- resets
