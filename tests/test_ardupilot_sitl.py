@@ -250,6 +250,7 @@ def _profile(tmp_path: Path, output_mode: str) -> Path:
 
 
 def _drive(monitor: Monitor, gcs: Gcs, log_path: Path) -> None:
+    monitor.arm()  # the profile's require_armed: the bridge holds neutral while the autopilot is disarmed
     gcs.vx_mps = 1.0
     started = time.monotonic()
     assert monitor.first(lambda a, b: a >= 1600 and b >= 1600, started, 10.0) is not None, \

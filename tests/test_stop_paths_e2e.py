@@ -233,13 +233,13 @@ def test_the_link_to_the_autopilot_silent_in_auto_stops_and_the_stop_cannot_be_c
           f"rover stopped {stop_s:.2f} s / {stop_m:.2f} m after the silence began; stop at exit not confirmed")
 
 
-@pytest.mark.parametrize("require_armed", [False, True], ids=["shipped", "require_armed"])
+@pytest.mark.parametrize("require_armed", [True, False], ids=["shipped", "require_armed_off"])
 def test_a_disarm_in_auto_stops_the_wheels(require_armed: bool) -> None:
     """A ground station disarms the rover mid-mission (MAV_CMD_COMPONENT_ARM_DISARM 0, forced with 21196):
     ArduPilot's demand goes to trim at once (disarmed, AP_MotorsUGV outputs trim) and the bridge, following it,
     brakes at the limiter's deceleration to neutral; ArduPilot's "Throttle disarmed" reaches the ground station
-    through the bridge. With safety.require_armed (not in the shipped SITL profile) the bridge also goes
-    DISARMED at the heartbeat that says so: neutral from then on, and says it."""
+    through the bridge. With safety.require_armed (shipped) the bridge also goes DISARMED at the heartbeat that
+    says so: neutral from then on, and says it; without it the trim demand alone stops the rover."""
     base = shipped_profile()
     profile = dataclasses.replace(base, safety=dataclasses.replace(base.safety, require_armed=require_armed))
     rig = on_a_mission(profile)
@@ -267,10 +267,10 @@ def test_a_disarm_in_auto_stops_the_wheels(require_armed: bool) -> None:
             v0, took = speed_m_s(p, ramp[0][1]), ours[0] + rig.ls.dt_s - ramp[0][0]
         else:
             v0, took = check_braked(rig, first_down - rig.ls.dt_s)
-            assert ours == []  # the shipped profile: the trim demand alone stops it, the bridge says nothing more
+            assert ours == []  # require_armed off: the trim demand alone stops it, the bridge says nothing more
         stop_s, stop_m = stops_within(rig, disarmed[0], v0 / p.limits.max_linear_decel_m_s2 + 2.0)
     finally:
         rig.close()
-    print(f"\ndisarm in AUTO ({'require_armed' if require_armed else 'shipped profile'}): outputs ramping "
+    print(f"\ndisarm in AUTO (require_armed {'on, shipped' if require_armed else 'off'}): outputs ramping "
           f"{1000 * (first_down - disarmed[0]):.0f} ms after 'Throttle disarmed', {v0:.2f} m/s to trim in "
           f"{1000 * took:.0f} ms; rover stopped {stop_s:.2f} s / {stop_m:.2f} m after")
