@@ -129,6 +129,22 @@ def test_a_step_is_not_held_against_the_wheels_by_the_consistency_window() -> No
         assert j.step == (k in (20, 21)) and not j.slip
     assert judge.trusted
 
+def test_the_interval_after_a_step_settles_without_teaching_the_heading() -> None:
+    # A turn's onset on a real Rover SITL: the wheels lead the gyro (a step), and in the next interval the
+    # body's rate overshoots the wheels' by 3 %. Learnt from, that interval taught the track 2.8 % off; it is
+    # not a step itself, and the one after it is judged as usual.
+    judge = WheelJudge(L, NOISE)
+    x, P = _state(v=0.8)
+    turn = 0.6
+    wheels = ((0.8 - 0.5 * turn * L) * DT, (0.8 + 0.5 * turn * L) * DT)
+    assert judge.judge(DT, WheelInterval(*wheels, DT, 0.3 * turn, 0.5 * turn), x, P).step  # within the spread
+    settling = judge.judge(2 * DT, WheelInterval(*wheels, DT, turn * 1.03, 0.0), x, P)
+    assert not settling.step and not settling.slip
+    assert settling.heading_var >= P[IWY, IWY] + (0.03 * turn * DT) ** 2
+    after = judge.judge(3 * DT, WheelInterval(*wheels, DT, turn, 0.0), x, P)
+    assert not after.step and after.heading_var == P[IWY, IWY]
+
+
 def test_a_turn_the_wheels_follow_is_not_a_step() -> None:
     # The same change of the gyro's rate with the wheels turning as the body does (a turn through the
     # motors' lag): nothing is freed.

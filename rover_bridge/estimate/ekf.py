@@ -354,7 +354,7 @@ class WheelGyroEKF:
         """The wheels now disagree with the gyro: the bias they taught since it was last sound (a checkpoint
         before the newest: the window that agreed last can hold the start of the disagreement) was their error,
         back to it, uncorrelated; the yaw gives back their turn beyond the gyro's in the disagreeing window,
-        which it followed (their heading error takes it). Notes: /work/notes/acc30.md, ekf30.md."""
+        which it followed (their heading error takes it)."""
         turn, (x[IB], var) = self.judge.distrust_turn_rad, self._sound_bias
         x[IYAW], x[IWY] = wrap_angle(float(x[IYAW]) - turn), x[IWY] + turn
         P[IB, :] = P[:, IB] = 0.0
