@@ -74,6 +74,8 @@ class ConsistencyWindow:
             return False
         if span < WINDOW_S - 1e-9 or (dist < MIN_DIST_M and angle < MIN_TURN_RAD):
             return None  # an agreement is judged over a whole window, with motion in it
+        if bias_var * span * span > var - bias_var * span * span:
+            return None  # the bias's uncertainty could hide a disagreement: that agreement proves nothing
         self.clear()
         self._agreed += 1
         return True if self._agreed >= AGREE_WINDOWS else None

@@ -33,6 +33,7 @@ from rover_bridge.estimate.models import (
     IV,
     IW,
     IWY,
+    IYAW,
     GeometryPrior,
     Mat,
     NoiseModel,
@@ -150,7 +151,10 @@ class WheelJudge:
         return mean_v + k * (mean_v - prev[0]), (1.0 + k) ** 2 * r_v + k * k * prev[1]
 
     def _distrust_var(self, P: Mat) -> float:
-        return float(P[IWY, IWY]) if self.trusted else max(float(P[IWY, IWY]), DISTRUST_SIGMA_RAD ** 2)
+        if self.trusted:
+            return float(P[IWY, IWY])
+        # Free relative to the yaw: the heading the wheels predict (yaw + error) is DISTRUST_SIGMA_RAD uncertain
+        return max(float(P[IWY, IWY]), DISTRUST_SIGMA_RAD ** 2 - float(P[IYAW, IYAW]) - 2.0 * float(P[IYAW, IWY]))
 
     def _slip_test(self, z_omega_rad_s: float, r_omega: float, w: WheelInterval, x: Vec, P: Mat
                    ) -> tuple[float, float, float]:
