@@ -14,8 +14,9 @@ whether the wheels' heading is trusted.
   disagreement as on slip; the speed is fused as usual. Without this the wheels' heading pulled the
   yaw at each slip edge (accuracy.py slip: 0.7-0.9 deg per edge, 3.1 deg worst of seeds 1-9).
 - Trust (consistency.py): while the wheels and the gyro disagree, the wheels' heading error is free
-  and the gyro holds the heading; they are trusted again after a standstill, once a whole window in
-  motion agrees.
+  (the heading they predict, yaw + error, is DISTRUST_SIGMA_RAD uncertain: a floor on the error alone
+  was none once the yaw was as uncertain, its mirror) and the gyro holds the heading; they are trusted
+  again after a standstill, once a whole window in motion agrees.
 """
 
 # Kalman-filter notation (P for a covariance) reads better than pep8 names here.
