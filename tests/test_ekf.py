@@ -480,6 +480,33 @@ def test_a_bias_taught_by_wheels_that_then_disagree_is_unlearnt() -> None:
     assert ekf.P[IB, IB] == pytest.approx(0.03 ** 2, rel=0.01)
 
 
+def test_wheels_off_from_a_moving_start_neither_teach_a_bias_nor_win_back_trust_on_the_bias_doubt() -> None:
+    # Driving off at once (no standstill: the bias is the prior's, 0.03 rad/s) on a right wheel 2 % large, the
+    # wheels are distrusted within a second and their heading drifts 0.053 rad/s from the body's. Two ways they
+    # took the heading back (benchmarks/accuracy.py --moving miscalibrated: 180 deg): once the yaw's uncertainty
+    # (the bias's, integrated) passed 1 rad their "free" heading error was no longer free relative to the yaw
+    # and taught the gyro their drift as a bias; and after a stop, windows "agreed" only because the bias's doubt
+    # (5 sigma: 0.15 rad/s) covered the drift, so they were trusted and taught it, the yaw jumping with it.
+    ekf = WheelGyroEKF(L)
+    t, dt = 0.0, 0.1
+    worst, trusted_again = 0.0, False
+    for start, seconds in ((0.0, 36.0), (38.0, 8.0)):  # a stop from 36 to 38 s
+        while t < start - 1e-9:
+            t += dt
+            ekf.update_gyro(t, 0.0)
+            ekf.update_wheels(t, 0.0, 0.0, dt, gyro_omega_rad_s=0.0)
+        while t < start + seconds - 1e-9:
+            v = min(0.8, 0.2 + 0.8 * (t - start) / 1.5)  # the speed rises: a drift that grows with it is no bias
+            t += dt
+            ekf.update_gyro(t, 0.0)  # the body goes straight; the gyro has no bias
+            ekf.update_wheels(t, v * dt, 1.02 * v * dt, dt, gyro_omega_rad_s=0.0)
+            trusted_again = trusted_again or (t > 2.0 and ekf.wheels_trusted)
+            worst = max(worst, abs(math.remainder(float(ekf.x[IYAW]), 2 * math.pi)))
+    assert not trusted_again
+    assert abs(float(ekf.x[IB])) < 0.002  # not their drift (0.053)
+    assert math.degrees(worst) < 4.0  # what the yaw followed while they were trusted at first (2.2 deg), no more
+
+
 def test_wheels_found_disagreeing_give_back_the_turn_the_yaw_followed() -> None:
     # An arc at 0.6 rad/s on a track 3 % off: the wheels read 3 % less turn. Trusted until the consistency
     # window finds them out, they hold the yaw meanwhile; when they are distrusted the yaw gives that turn

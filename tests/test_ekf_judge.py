@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from rover_bridge.estimate.consistency import AGREE_WINDOWS, WINDOW_S, ConsistencyWindow
-from rover_bridge.estimate.models import IB, IKR, IKT, IV, IW, IWY, N_STATES, NoiseModel
+from rover_bridge.estimate.models import IB, IKR, IKT, IV, IW, IWY, IYAW, N_STATES, NoiseModel
 from rover_bridge.estimate.sampling import GYRO_SAMPLING_FACTOR, SampleCorrections
 from rover_bridge.estimate.wheel_judge import (
     DISTRUST_SIGMA_RAD,
@@ -86,14 +86,33 @@ def test_the_wheels_heading_is_trusted_again_only_after_a_standstill_and_whole_a
         return var
 
     assert drive(2.0, 0.5, 0.5) == P[IWY, IWY] and judge.trusted  # they agree
+    # distrusted: the heading they predict (yaw + their error) is free
+    free = DISTRUST_SIGMA_RAD**2 - P[IYAW, IYAW] - 2.0 * P[IYAW, IWY]
     # the wheels turn 3 % less than the gyro (a track 3 % off): not slip, but they disagree over the window
-    assert drive(1.0, 0.485, 0.5) >= DISTRUST_SIGMA_RAD**2 and not judge.trusted
-    assert drive(3.0, 0.5, 0.5) >= DISTRUST_SIGMA_RAD**2  # agreeing again in motion is not enough
+    assert drive(1.0, 0.485, 0.5) >= free and not judge.trusted
+    assert drive(3.0, 0.5, 0.5) >= free  # agreeing again in motion is not enough
     drive(0.5, 0.0, 0.0, v=0.0)  # a standstill
     assert not judge.trusted
     drive(WINDOW_S * (AGREE_WINDOWS + 0.5), 0.5, 0.5)
     assert judge.trusted
 
+
+
+def test_distrusted_wheels_heading_is_free_also_when_the_yaw_is_unknown() -> None:
+    # Hours without a standstill: the yaw (bias integrated) is 2 rad uncertain, and the wheels' heading error, last
+    # re-anchored to it, is its mirror (yaw + error known to a reading). A floor of DISTRUST_SIGMA_RAD on the error
+    # alone (it is already 2 rad) left the heading they predict a reading's width: distrusted wheels held the yaw
+    # rate again and taught the gyro their drift as a bias.
+    judge = WheelJudge(L, NOISE)
+    x, P = _state(w=0.5)
+    P[IYAW, IYAW] = P[IWY, IWY] = 4.0
+    P[IYAW, IWY] = P[IWY, IYAW] = -4.0 + 1e-6
+    t = 0.0
+    for _ in range(round(0.5 / DT)):  # disagreeing (a track 3 % off)
+        t += DT
+        var = judge.judge(t, _interval(0.5, 0.485, 0.5), x, P).heading_var
+    assert not judge.trusted
+    assert P[IYAW, IYAW] + 2.0 * P[IYAW, IWY] + var >= DISTRUST_SIGMA_RAD**2
 
 def test_the_slip_test_allows_the_gyros_noise_bias_and_spread() -> None:
     judge = WheelJudge(L, NOISE)
@@ -183,6 +202,22 @@ def test_a_disagreement_is_judged_at_once_against_what_the_noise_and_the_geometr
         window.add(DT, 0.01, 0.002, 1e-8, 0.025, geometry_rad=0.001)
     assert window.agree(1e-8, 1e-8) is None
 
+
+
+def test_an_agreement_the_bias_doubt_could_hide_is_no_verdict() -> None:
+    # Wheels drifting 0.05 rad/s from the gyro (a radius 2 % off at 0.8 m/s) with the bias unknown (0.02 rad/s,
+    # a start without a standstill): within 5 sigma, but only thanks to the bias's doubt: no agreement. With the
+    # bias known the same drift is a disagreement; with agreeing wheels it is an agreement.
+    def verdicts(drift_rad_s: float, bias_var: float) -> list[bool | None]:
+        window, out = ConsistencyWindow(), []
+        for _ in range(round(WINDOW_S * AGREE_WINDOWS / DT)):
+            window.add(DT, drift_rad_s * DT, drift_rad_s * DT, 1e-8, 0.04)
+            out.append(window.agree(bias_var, 1e-8))
+        return out
+
+    assert set(verdicts(0.05, 0.02**2)) == {None}
+    assert False in verdicts(0.05, 0.0002**2)
+    assert verdicts(0.0, 0.0002**2)[-1] is True
 
 # ---------------------------------------------------------------- sampling
 

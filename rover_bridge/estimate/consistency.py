@@ -61,8 +61,11 @@ class ConsistencyWindow:
         """Whether they agree (module docstring): False at once when a window disagrees, True after
         AGREE_WINDOWS windows in a row agreed, each over at least MIN_DIST_M or MIN_TURN_RAD of motion (an
         agreement over too little motion proves nothing, and one window can hide a radius error against a
-        track error that cancels it over a straight and a turn); else None (no new verdict). `reading_var`
-        is one reading's heading variance. The geometry's shares add up as one error (fully correlated)."""
+        track error that cancels it over a straight and a turn), and with the bias's uncertainty at most half the
+        allowance (else it may hide their error, which trusted wheels would teach the gyro as a bias, the yaw
+        moving with it over all the time the bias was unknown: accuracy.py --moving miscalibrated flipped 180 deg);
+        else None (no new verdict). `reading_var` is one reading's heading variance. The geometry's shares add up
+        as one error (fully correlated)."""
         span, d, gyro_var, dist, angle, geometry = self._sums
         if span < MIN_SPAN_S:
             return None
@@ -74,6 +77,8 @@ class ConsistencyWindow:
             return False
         if span < WINDOW_S - 1e-9 or (dist < MIN_DIST_M and angle < MIN_TURN_RAD):
             return None  # an agreement is judged over a whole window, with motion in it
+        if bias_var * span * span > var - bias_var * span * span:
+            return None  # the bias's uncertainty could hide a disagreement: that agreement proves nothing
         self.clear()
         self._agreed += 1
         return True if self._agreed >= AGREE_WINDOWS else None

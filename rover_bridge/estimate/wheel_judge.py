@@ -19,8 +19,9 @@ whether the wheels' heading is trusted.
   then distrusted the right wheels against the wrong track for good (tests/data's SITL log: 1.590 m
   calibrated against 1.633 m measured live; 1.635 m with the settling interval).
 - Trust (consistency.py): while the wheels and the gyro disagree, the wheels' heading error is free
-  and the gyro holds the heading; they are trusted again after a standstill, once a whole window in
-  motion agrees.
+  (the heading they predict, yaw + error, is DISTRUST_SIGMA_RAD uncertain: a floor on the error alone
+  was none once the yaw was as uncertain, its mirror) and the gyro holds the heading; they are trusted
+  again after a standstill, once a whole window in motion agrees.
 """
 
 # Kalman-filter notation (P for a covariance) reads better than pep8 names here.
@@ -38,6 +39,7 @@ from rover_bridge.estimate.models import (
     IV,
     IW,
     IWY,
+    IYAW,
     GeometryPrior,
     Mat,
     NoiseModel,
@@ -161,7 +163,10 @@ class WheelJudge:
         return mean_v + k * (mean_v - prev[0]), (1.0 + k) ** 2 * r_v + k * k * prev[1]
 
     def _distrust_var(self, P: Mat) -> float:
-        return float(P[IWY, IWY]) if self.trusted else max(float(P[IWY, IWY]), DISTRUST_SIGMA_RAD ** 2)
+        if self.trusted:
+            return float(P[IWY, IWY])
+        # Free relative to the yaw: the heading the wheels predict (yaw + error) is DISTRUST_SIGMA_RAD uncertain
+        return max(float(P[IWY, IWY]), DISTRUST_SIGMA_RAD ** 2 - float(P[IYAW, IYAW]) - 2.0 * float(P[IYAW, IWY]))
 
     def _slip_test(self, z_omega_rad_s: float, r_omega: float, w: WheelInterval, x: Vec, P: Mat
                    ) -> tuple[float, float, float]:
