@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 import math
 import sys
 from pathlib import Path
@@ -87,6 +88,40 @@ def test_zero_targets_reset_and_never_kick_backwards() -> None:
     lp2 = loop(kp=5.0)
     _, out = run(lp2, WheelSpeeds(1.0, 1.0), (8.0, 8.0), 0.0, 0.5)
     assert all(o.left_rad_s >= 0.0 and o.right_rad_s >= 0.0 for o in out)
+
+
+def test_a_wheel_held_at_zero_does_not_wind_its_integrator_backwards() -> None:
+    # A rover coasting down slower than the limiter ramps (a handover from the autopilot's demand at speed to a
+    # slow request): the wheel is faster than its target for a while and the command is held at zero. Once it
+    # is down to the target the command is the target again, not held at zero by a wound-up integrator.
+    lp = loop(kp=1.0, ki_1_s=10.0)
+    t, out = run(lp, WheelSpeeds(2.0, 2.0), (8.0, 8.0), 0.0, 1.0)
+    assert out[-1].left_rad_s == 0.0  # held at zero (never the other direction)
+    assert lp.integral[0] > -2.0  # it stopped winding once held at zero: less than the target
+    feed(lp, t + 0.05, 2.0, 2.0)
+    assert lp.command(WheelSpeeds(2.0, 2.0), 0.05, t + 0.05).command.left_rad_s > 0.0
+
+
+def test_the_loop_cuts_a_wheel_no_faster_than_the_limiter_and_lets_it_grow() -> None:
+    # The wheels lag a braking ramp (a rover coasting down slower than the limiter): the loop's correction
+    # would cut the command faster than the ramp; it shrinks by at most max_step_rad_s2 per second. A command
+    # that grows (a weak wheel behind its target) is not held back.
+    lp = WheelSpeedLoop(dataclasses.replace(ControlParams(), kp=2.0), RANGE, RANGE, max_step_rad_s2=40.0)
+    t, target = 0.0, 16.0
+    out: list[float] = []
+    for _ in range(10):
+        t = round(t + 0.05, 9)
+        target -= 1.0  # the limiter's ramp: 20 rad/s^2
+        feed(lp, t, 16.0, 16.0)  # the wheels have not slowed yet
+        out.append(lp.command(WheelSpeeds(target, target), 0.05, t).command.left_rad_s)
+    assert all(a - b <= 40.0 * 0.05 + 1e-9 for a, b in itertools.pairwise(out))
+    assert max(a - b for a, b in itertools.pairwise(out)) == pytest.approx(40.0 * 0.05)  # it did bind
+    weak = WheelSpeedLoop(dataclasses.replace(ControlParams(), kp=2.0), RANGE, RANGE, max_step_rad_s2=40.0)
+    grown = []
+    for i in range(6):
+        feed(weak, 0.05 * (i + 1), 2.0, 2.0)  # a stalled-looking weak wheel far behind 8 rad/s
+        grown.append(weak.command(WheelSpeeds(8.0, 8.0), 0.05, 0.05 * (i + 1)).command.left_rad_s)
+    assert max(b - a for a, b in itertools.pairwise(grown)) > 40.0 * 0.05  # growth is not slewed
 
 
 def test_stale_encoders_hold_the_learnt_correction_and_resume_without_a_jump() -> None:

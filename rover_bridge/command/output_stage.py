@@ -52,7 +52,10 @@ class OutputStage:
         self.period_s = 1.0 / profile.command.rate_hz
         c = profile.control
         ranges = (self.outputs.speed_range(left=True), self.outputs.speed_range(left=False))
-        self.loop = WheelSpeedLoop(c, *ranges) if c.mode == "closed_loop" else None
+        lim, robot = profile.limits, profile.robot
+        wheel_accel_rad_s2 = (max(lim.max_linear_accel_m_s2, lim.max_linear_decel_m_s2)
+                              + lim.max_angular_accel_rad_s2 * robot.track_width_m / 2.0) / robot.wheel_radius_m
+        self.loop = WheelSpeedLoop(c, *ranges, wheel_accel_rad_s2) if c.mode == "closed_loop" else None
         self.wiring = WiringMonitor(c, *ranges)
         self.last_wheel_pwm: WheelPwm | None = None
         self.last_output_s: float | None = None

@@ -17,7 +17,16 @@ only what the feedforward gets wrong is corrected (1.7 % there).
 - Desaturation: when a wheel's u is beyond what its motor can do (its map's range), both wheels' u
   are scaled by one common factor, as the open-loop clamp does, so the path's curvature is kept.
 - Anti-windup: while the output is saturated, or the kinematics already scaled the targets down,
-  the integrators may only shrink; they are clamped to integrator_max_fraction of the top speed.
+  the integrators may only shrink; they are clamped to integrator_max_fraction of the top speed. A wheel
+  held at zero by the direction rule (below) is saturated too: a rover that coasts down slower than the
+  limiter ramps (a handover from 2.7 m/s to a 0.5 m/s request) would otherwise wind its integrator
+  backwards and hold the wheel at zero far below the target (0.19 m/s in the emulator).
+- Slew: a wheel's command shrinks by at most max_step_rad_s2 per second, the wheel acceleration the
+  limiter's own limits allow (linear plus angular), so the loop's correction never cuts a wheel faster
+  than the limiter would (a real Rover SITL, AUTO -> MANUAL at 2.7 m/s: 118 us in one 50 ms period
+  against the limiter's 63 us, the rover lagging the limiter's braking ramp). A growing command is not
+  slewed (the ramp plus what a weak wheel lacks; how fast a miswired loop runs away is what the wiring
+  monitor tells faults apart by). Stops are not slewed either: a zero target is neutral at once.
 - Resets: targets of zero (neutral, idle, timeout done, link lost, disarmed, refused, stopped) clear
   the integrators and give zero: a stop never kicks a wheel backwards. A non-zero target is never
   answered with the opposite direction either (braking is the limiter's ramp, not reverse thrust).
@@ -106,8 +115,10 @@ class WheelSpeedLoop:
     """Per-wheel feedforward + PI with anti-windup and a shared desaturation (see the module docstring)."""
 
     def __init__(self, params: ControlParams, left_range: tuple[float, float],
-                 right_range: tuple[float, float]) -> None:
+                 right_range: tuple[float, float], max_step_rad_s2: float = math.inf) -> None:
         self.kp = params.kp
+        self.max_step_rad_s2 = max_step_rad_s2  # the most a wheel's command may change per second (docstring)
+        self._last: list[float] | None = None  # the last command, while the loop runs
         self.ki = params.ki_1_s
         self.timeout_s = params.encoder_timeout_s
         self.ranges = (left_range, right_range)  # (fastest reverse, fastest forward), rad/s
@@ -142,6 +153,7 @@ class WheelSpeedLoop:
     def reset(self) -> None:
         self.integral = [0.0, 0.0]
         self.reference = None  # set from the measured speeds on the next command
+        self._last = None
         self._still_since = [None, None]
 
     def command(self, target: WheelSpeeds, dt_s: float, now_s: float, pre_scaled: bool = False,
@@ -171,8 +183,9 @@ class WheelSpeedLoop:
             else:
                 reference[k] += follow * (targets[k] - reference[k])
         errors = (reference[0] - speeds[0], reference[1] - speeds[1])
-        u, saturated = self._limit(
-            [t + self.kp * e + i for t, e, i in zip(targets, errors, self.integral, strict=True)], targets, pre_scaled)
+        asked = [t + self.kp * e + i for t, e, i in zip(targets, errors, self.integral, strict=True)]
+        raw = self._slew(asked, dt_s)
+        u, saturated = self._limit(list(raw), targets, pre_scaled)
         if not freeze and dt_s > 0.0:
             for k in (0, 1):
                 if held[k]:
@@ -180,9 +193,25 @@ class WheelSpeedLoop:
                 step = self.ki * errors[k] * dt_s
                 if saturated and (step > 0.0) == (targets[k] > 0.0):
                     continue  # saturated: the integrator may only unwind
+                if (raw[k] > 0.0) != (targets[k] > 0.0) and (step > 0.0) != (targets[k] > 0.0):
+                    continue  # held at zero (never the other direction): nor may it wind up backwards
+                if raw[k] != asked[k] and (step > 0.0) == (asked[k] > raw[k]):
+                    continue  # slew-limited: the same
                 self.integral[k] = max(-self.i_max[k], min(self.i_max[k], self.integral[k] + step))
         self._learnt_at = list(targets)
+        self._last = list(u)
         return LoopResult(WheelSpeeds(u[0], u[1]), saturated, True)
+
+    def _slew(self, u: list[float], dt_s: float) -> list[float]:
+        """Each wheel's command at most max_step_rad_s2 * dt_s from the last one (module docstring)."""
+        last = self._last
+        if last is None:
+            return list(u)
+        step = self.max_step_rad_s2 * dt_s
+        # Toward zero only: a command growing is the limiter's ramp plus what the wheel lacks (a runaway
+        # there is the wiring monitor's to name, and its names rest on how fast it grows).
+        return [x if abs(x) >= abs(prev) and x * prev >= 0.0 else min(prev + step, max(prev - step, x))
+                for prev, x in zip(last, u, strict=True)]
 
     def _hold(self, targets: tuple[float, float], follow: float, pre_scaled: bool, fresh: bool) -> LoopResult:
         """No current measurement: the target plus the integrator's correction, scaled with the target
@@ -197,6 +226,7 @@ class WheelSpeedLoop:
                 self.reference[k] += follow * (targets[k] - self.reference[k])
         self._still_since = [None, None]
         command, saturated = self._limit(u, targets, pre_scaled)
+        self._last = list(command)
         return LoopResult(WheelSpeeds(command[0], command[1]), saturated, fresh)
 
     def _limit(self, u: list[float], targets: tuple[float, float], pre_scaled: bool) -> tuple[list[float], bool]:
