@@ -19,7 +19,7 @@ from navrig import WAYPOINTS, BridgeRig, shipped_parm, shipped_profile
 
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import Profile
-from sitl.modes import MODE_AUTO
+from sitl.modes import MODE_AUTO, MODE_HOLD, MODE_MANUAL
 from sitl.scenario import LinkSilence
 
 pytestmark = pytest.mark.e2e
@@ -274,3 +274,73 @@ def test_a_disarm_in_auto_stops_the_wheels(require_armed: bool) -> None:
     print(f"\ndisarm in AUTO (require_armed {'on, shipped' if require_armed else 'off'}): outputs ramping "
           f"{1000 * (first_down - disarmed[0]):.0f} ms after 'Throttle disarmed', {v0:.2f} m/s to trim in "
           f"{1000 * took:.0f} ms; rover stopped {stop_s:.2f} s / {stop_m:.2f} m after")
+
+
+# -- handing the wheels over mid-mission ----------------------------------------------------------------------
+
+HOLDING = "RB: autopilot in HOLD, braking, then neutral"
+
+
+def switch_mode(rig: StopRig, mode: int) -> float:
+    """A ground station's DO_SET_MODE through the bridge; when it was sent."""
+    rig.ls.gcs.mav.command_long_send(1, 1, P.MAV_CMD_DO_SET_MODE, 0, P.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode,
+                                     0, 0, 0, 0, 0)
+    return rig.ls.t_s
+
+
+def test_auto_to_manual_mid_mission_hands_the_wheels_to_the_gcs_without_a_jump() -> None:
+    """Mid-mission at over 2 m/s a ground station switches to MANUAL while it streams a velocity request (0.5 m/s
+    ahead, refused in AUTO): the motor outputs go from the autopilot's demand to the request at the limiter's
+    pace, never a step, and the rover then drives at the request, straight."""
+    rig = on_a_mission()
+    p = rig.profile
+    try:
+        forward = rig.drive(0.5)
+        rig.run(1.0, forward)
+        assert rig.ls.core.command.counters.get("dropped.mode", 0) > 0  # in AUTO the request does not drive
+        t_cmd = switch_mode(rig, MODE_MANUAL)
+        rig.run(4.0, forward)
+        assert rig.emu.mode == MODE_MANUAL and rig.said("RB: MANUAL: GCS requests drive", t_cmd)
+        handover = rig.since(t_cmd - 1.0)
+        assert largest_step_us(handover) <= step_bound_us(p)
+        # Slowed to the request, never stopped on the way: the wheels' speed is measured late, so the loop holds
+        # them at zero a little past the request (the integrator must not wind up backwards meanwhile).
+        i0 = next(i for i, s in enumerate(rig.outputs) if s[0] >= t_cmd)
+        slowest_m_s = min(math.dist(a, b) / rig.ls.dt_s for a, b in itertools.pairwise(rig.track[i0:]))
+        assert slowest_m_s >= 0.5 * 0.5
+        assert rig.emu.truth.v_m_s == pytest.approx(0.5, abs=0.05)
+        assert abs(rig.emu.truth.yaw_rate_rad_s) < 0.05
+    finally:
+        rig.close()
+    print(f"\nAUTO -> MANUAL mid-mission at {speed_m_s(p, handover[0][1]):.2f} m/s: largest output step "
+          f"{largest_step_us(handover)} us (limiter bound {step_bound_us(p):.0f} us), slowest {slowest_m_s:.2f} m/s "
+          f"on the way to the request's 0.5 m/s")
+
+
+def test_auto_to_hold_mid_mission_brakes_to_a_stop_and_holds() -> None:
+    """Mid-mission a ground station switches to HOLD (the autopilot's own demand then says stop too): the bridge
+    says so, brakes at the limiter's deceleration to trim and holds it; the rover stops."""
+    rig = on_a_mission()
+    p = rig.profile
+    try:
+        t_cmd = switch_mode(rig, MODE_HOLD)
+        rig.run(3.0)
+        holding = rig.said(HOLDING, t_cmd)
+        assert rig.emu.mode == MODE_HOLD and holding and holding[0] <= t_cmd + 0.1
+        before = [s for s in rig.outputs if s[0] < holding[0]][-1]
+        ramp = [before, *rig.since(holding[0])]
+        at_trim = next(i for i, s in enumerate(ramp) if s[1] == s[2] == TRIM)
+        v0, took = speed_m_s(p, max(before[1:3])), ramp[at_trim][0] - holding[0]
+        # Braked by the wheel-speed loop along the limiter's ramp: no step beyond it, no push beyond where the
+        # wheels were (the loop's map may differ from the demand's by a few microseconds), at the limiter's
+        # deceleration or firmer where the motors lag it, then trim and held.
+        assert largest_step_us(ramp[:at_trim + 1]) <= step_bound_us(p)
+        assert all(max(s[1:3]) <= max(before[1:3]) + 5 for s in ramp)
+        assert took <= v0 / p.limits.max_linear_decel_m_s2 + period_s(p) + rig.ls.dt_s
+        stop_s, stop_m = stops_within(rig, t_cmd, v0 / p.limits.max_linear_decel_m_s2 + 2.0)
+        rig.run(2.0)
+        assert rig.stopped() and all(s[1] == s[2] == TRIM for s in ramp[at_trim:] + rig.since(ramp[-1][0]))
+    finally:
+        rig.close()
+    print(f"\nAUTO -> HOLD mid-mission: braking {1000 * (holding[0] - t_cmd):.0f} ms after the command, "
+          f"{v0:.2f} m/s to trim in {1000 * took:.0f} ms; rover stopped {stop_s:.2f} s / {stop_m:.2f} m after")
