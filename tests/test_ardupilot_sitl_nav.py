@@ -630,47 +630,6 @@ def test_a_disarm_in_auto_stops_the_wheels_through_the_bridge(sides: tuple[Side,
     assert any(t.startswith("RB: autopilot disarmed") for t in said) and stop_m <= 3.0
 
 
-def test_auto_to_manual_then_hold_mid_mission_through_the_bridge(sides: tuple[Side, Side]) -> None:
-    """Mid-mission the GCS switches to MANUAL while it streams a request (0.5 m/s ahead, refused in AUTO): the
-    motor outputs 1/3 go from ArduPilot's demand to the request without a step beyond the limiter's (judged on
-    SERVO_OUTPUT_RAW's own stamps), and the rover drives at the request; then HOLD brakes it to a stop."""
-    _anchor, side = sides
-    p = load_profile(PROFILE)
-    mon = side.sitl.monitor
-    period_s = 1.0 / p.command.rate_hz
-    lim, robot = p.limits, p.robot
-    dv = max(lim.max_linear_accel_m_s2, lim.max_linear_decel_m_s2) * period_s
-    dw = lim.max_angular_accel_rad_s2 * period_s
-    step_us = 500.0 * (dv + dw * robot.track_width_m / 2.0) / robot.wheel_radius_m / robot.max_wheel_rad_s + 1.0
-    in_auto_at_speed(side)
-    side.drive(0.5, 0.0)
-    time.sleep(1.0)
-    t0 = time.monotonic()
-    v_auto = side.sitl._speed_from_track()
-    side.set_mode(MANUAL)
-    assert mon.wait(lambda: abs(side.sitl._speed_from_track() - 0.5) < 0.1, 10.0)
-    time.sleep(1.0)
-    v_manual = side.sitl._speed_from_track()
-    outs = [(m.time_usec * 1e-6, m.servo1_raw, m.servo3_raw) for m in mon.of("SERVO_OUTPUT_RAW", t0 - 0.5)]
-    # The largest change per bridge period between two samples (stamps 25 ms apart: at most one period's step,
-    # two where a sample spans an output on either side).
-    worst = max(max(abs(b[1] - a[1]), abs(b[2] - a[2])) / max(1, math.ceil((b[0] - a[0]) / period_s - 1e-6))
-                for a, b in itertools.pairwise(outs) if b[0] > a[0])
-    t1 = time.monotonic()
-    side.set_mode(HOLD)
-    stop_s, stop_m = stopping(side, t1)
-    said = side.gcs.texts(t0)
-    held = [(m.servo1_raw, m.servo3_raw) for m in mon.of("SERVO_OUTPUT_RAW", t1 + stop_s)]
-    FIGURES.append(f"AUTO -> MANUAL at {v_auto:.2f} m/s, the GCS asking 0.5 m/s: largest output change per bridge "
-                   f"period {worst:.0f} us (limiter bound {step_us:.0f} us), then {v_manual:.2f} m/s; -> HOLD: "
-                   f"still {stop_s:.2f} s / {stop_m:.2f} m after")
-    side.set_mode(MANUAL)
-    side.disarm()
-    assert "RB: MANUAL: GCS requests drive" in said and "RB: autopilot in HOLD, braking, then neutral" in said
-    assert worst <= step_us and abs(v_manual - 0.5) < 0.1
-    assert held and all(h == (TRIM, TRIM) for h in held) and stop_m <= 3.0
-
-
 def test_sigterm_in_auto_trims_the_outputs(sides: tuple[Side, Side]) -> None:
     _anchor, side = sides
     assert side.bridge is not None
@@ -871,3 +830,43 @@ def test_a_stale_demand_in_auto_brakes_through_a_proxy(sides: tuple[Side, Side],
         assert any(abs(m.servo5_raw - TRIM) > 100 for m in mon.of("SERVO_OUTPUT_RAW", braking))  # it still drives
     finally:
         tidy_up(side, proxy)
+
+
+def test_auto_to_manual_then_hold_mid_mission_through_a_proxy(sides: tuple[Side, Side], tmp_path: Path) -> None:
+    """Mid-mission the GCS switches to MANUAL while it streams a request (0.5 m/s ahead, refused in AUTO): the
+    bridge's overrides (every one, seen by the proxy) go from ArduPilot's demand to the request without a step
+    beyond one period of the limiter's limits, and the rover drives at the request; then HOLD brakes it to a
+    stop and the overrides stay at trim."""
+    _anchor, shared = sides
+    p = load_profile(PROFILE)
+    proxy, side = proxied(shared, tmp_path)
+    period_s = 1.0 / p.command.rate_hz
+    lim, robot = p.limits, p.robot
+    dv = max(lim.max_linear_accel_m_s2, lim.max_linear_decel_m_s2) * period_s
+    dw = lim.max_angular_accel_rad_s2 * period_s
+    step_us = 500.0 * (dv + dw * robot.track_width_m / 2.0) / robot.wheel_radius_m / robot.max_wheel_rad_s + 1.0
+    try:
+        in_auto_at_speed(side)
+        side.drive(0.5, 0.0)
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        v_auto = side.sitl._speed_from_track()
+        side.set_mode(MANUAL)
+        assert side.sitl.monitor.wait(lambda: abs(side.sitl._speed_from_track() - 0.5) < 0.1, 10.0)
+        time.sleep(1.0)
+        v_manual = side.sitl._speed_from_track()
+        handover = [o for o in proxy.overrides if o[0] >= t0 - 0.5]
+        worst = max(max(abs(b[1] - a[1]), abs(b[2] - a[2])) for a, b in itertools.pairwise(handover))
+        t1 = time.monotonic()
+        side.set_mode(HOLD)
+        stop_s, stop_m = stopping(side, t1)
+        said = side.gcs.texts(t0)
+        held = [o[1:] for o in proxy.overrides if o[0] >= t1 + stop_s]
+        FIGURES.append(f"AUTO -> MANUAL at {v_auto:.2f} m/s, the GCS asking 0.5 m/s: largest step between two of the "
+                       f"bridge's overrides {worst} us (limiter bound {step_us:.0f} us), then {v_manual:.2f} m/s; "
+                       f"-> HOLD: still {stop_s:.2f} s / {stop_m:.2f} m after")
+    finally:
+        tidy_up(side, proxy)
+    assert "RB: MANUAL: GCS requests drive" in said and "RB: autopilot in HOLD, braking, then neutral" in said
+    assert worst <= step_us and abs(v_manual - 0.5) < 0.1
+    assert held and all(h == (TRIM, TRIM) for h in held) and stop_m <= 3.0

@@ -17,7 +17,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rover_bridge.command.outputs import OutputMap, SpeedCurve
-from rover_bridge.command.wheel_control import STALL_S, SpeedFilter, WheelSpeedLoop, WiringFault, WiringMonitor
+from rover_bridge.command.wheel_control import (
+    HANDOVER_S,
+    STALL_S,
+    SpeedFilter,
+    WheelSpeedLoop,
+    WiringFault,
+    WiringMonitor,
+)
 from rover_bridge.kinematics import MeasuredWheels, WheelSpeeds
 from rover_bridge.params import ControlParams, Profile, profile_from_dict
 from sitl import VehicleConfig
@@ -102,20 +109,23 @@ def test_a_wheel_held_at_zero_does_not_wind_its_integrator_backwards() -> None:
     assert lp.command(WheelSpeeds(2.0, 2.0), 0.05, t + 0.05).command.left_rad_s > 0.0
 
 
-def test_the_loop_cuts_a_wheel_no_faster_than_the_limiter_and_lets_it_grow() -> None:
-    # The wheels lag a braking ramp (a rover coasting down slower than the limiter): the loop's correction
-    # would cut the command faster than the ramp; it shrinks by at most max_step_rad_s2 per second. A command
-    # that grows (a weak wheel behind its target) is not held back.
-    lp = WheelSpeedLoop(dataclasses.replace(ControlParams(), kp=2.0), RANGE, RANGE, max_step_rad_s2=40.0)
-    t, target = 0.0, 16.0
-    out: list[float] = []
-    for _ in range(10):
+def test_a_loop_taking_over_a_moving_wheel_cuts_it_no_faster_than_the_limiter_and_lets_it_grow() -> None:
+    # The loop has just taken over moving wheels: when they run ahead of the target (a rover coasting down
+    # slower than the limiter's ramp) its correction would cut the command at once; for HANDOVER_S it shrinks
+    # by at most max_step_rad_s2 per second, then the loop corrects as hard as it asks. A command that grows
+    # (a weak wheel behind its target) is not held back.
+    lp = WheelSpeedLoop(dataclasses.replace(ControlParams(), kp=2.0, ki_1_s=0.0), RANGE, RANGE, max_step_rad_s2=40.0)
+    t = 0.0
+    out: list[tuple[float, float]] = []
+    for _ in range(40):
         t = round(t + 0.05, 9)
-        target -= 1.0  # the limiter's ramp: 20 rad/s^2
-        feed(lp, t, 16.0, 16.0)  # the wheels have not slowed yet
-        out.append(lp.command(WheelSpeeds(target, target), 0.05, t).command.left_rad_s)
-    assert all(a - b <= 40.0 * 0.05 + 1e-9 for a, b in itertools.pairwise(out))
-    assert max(a - b for a, b in itertools.pairwise(out)) == pytest.approx(40.0 * 0.05)  # it did bind
+        ahead = 5.0 if 0.3 < t <= 0.8 or t > HANDOVER_S + 0.3 else 0.0  # the wheels 5 rad/s faster than asked
+        feed(lp, t, 15.0 + ahead, 15.0 + ahead)
+        out.append((t, lp.command(WheelSpeeds(15.0, 15.0), 0.05, t).command.left_rad_s))
+    steps = [(t, a - b) for (_, a), (t, b) in itertools.pairwise(out)]
+    assert all(d <= 40.0 * 0.05 + 1e-9 for t, d in steps if t <= HANDOVER_S)
+    assert max(d for t, d in steps if t <= HANDOVER_S) == pytest.approx(40.0 * 0.05)  # it did bind
+    assert max(d for t, d in steps if t > HANDOVER_S) > 2 * 40.0 * 0.05  # then free
     weak = WheelSpeedLoop(dataclasses.replace(ControlParams(), kp=2.0), RANGE, RANGE, max_step_rad_s2=40.0)
     grown = []
     for i in range(6):

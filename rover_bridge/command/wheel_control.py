@@ -21,12 +21,15 @@ only what the feedforward gets wrong is corrected (1.7 % there).
   held at zero by the direction rule (below) is saturated too: a rover that coasts down slower than the
   limiter ramps (a handover from 2.7 m/s to a 0.5 m/s request) would otherwise wind its integrator
   backwards and hold the wheel at zero far below the target (0.19 m/s in the emulator).
-- Slew: a wheel's command shrinks by at most max_step_rad_s2 per second, the wheel acceleration the
-  limiter's own limits allow (linear plus angular), so the loop's correction never cuts a wheel faster
-  than the limiter would (a real Rover SITL, AUTO -> MANUAL at 2.7 m/s: 118 us in one 50 ms period
-  against the limiter's 63 us, the rover lagging the limiter's braking ramp). A growing command is not
-  slewed (the ramp plus what a weak wheel lacks; how fast a miswired loop runs away is what the wiring
-  monitor tells faults apart by). Stops are not slewed either: a zero target is neutral at once.
+- Handover slew: for HANDOVER_S after the loop (re)starts, a wheel's command shrinks by at most
+  max_step_rad_s2 per second, the wheel acceleration the limiter's own limits allow (linear plus
+  angular): a loop taking over a moving rover (from the autopilot's own demand, which it does not close)
+  does not cut a wheel faster than the limiter would (a real Rover SITL, AUTO -> MANUAL at 2.7 m/s: 118
+  us in one 50 ms period against the limiter's 63 us, the rover lagging the limiter's braking ramp).
+  Only then: a loop that has been driving brakes along the ramp as hard as its correction asks (slewed
+  always, a go-to on the real SITL stopped 0.58 m past its target, against 0.5 m allowed). A growing
+  command is not slewed (the ramp plus what a weak wheel lacks; how fast a miswired loop runs away is what
+  the wiring monitor tells faults apart by), nor a stop: a zero target is neutral at once.
 - Resets: targets of zero (neutral, idle, timeout done, link lost, disarmed, refused, stopped) clear
   the integrators and give zero: a stop never kicks a wheel backwards. A non-zero target is never
   answered with the opposite direction either (braking is the limiter's ramp, not reverse thrust).
@@ -70,6 +73,7 @@ RUNAWAY_MARGIN = 0.1  # what a closed loop does to a wheel whose encoder is anot
 # A measurement is current while no older than this many of the encoder's sample intervals: one lost
 # sample (two intervals) is not a silence yet.
 OVERDUE_INTERVALS = 2.5
+HANDOVER_S = 1.0  # the slew's window after the loop (re)starts (docstring)
 
 
 class SpeedFilter:
@@ -119,6 +123,7 @@ class WheelSpeedLoop:
         self.kp = params.kp
         self.max_step_rad_s2 = max_step_rad_s2  # the most a wheel's command may change per second (docstring)
         self._last: list[float] | None = None  # the last command, while the loop runs
+        self._running_s = 0.0  # since the loop (re)started: the slew's window (docstring)
         self.ki = params.ki_1_s
         self.timeout_s = params.encoder_timeout_s
         self.ranges = (left_range, right_range)  # (fastest reverse, fastest forward), rad/s
@@ -154,6 +159,7 @@ class WheelSpeedLoop:
         self.integral = [0.0, 0.0]
         self.reference = None  # set from the measured speeds on the next command
         self._last = None
+        self._running_s = 0.0
         self._still_since = [None, None]
 
     def command(self, target: WheelSpeeds, dt_s: float, now_s: float, pre_scaled: bool = False,
@@ -205,7 +211,8 @@ class WheelSpeedLoop:
     def _slew(self, u: list[float], dt_s: float) -> list[float]:
         """Each wheel's command at most max_step_rad_s2 * dt_s from the last one (module docstring)."""
         last = self._last
-        if last is None:
+        self._running_s += dt_s
+        if last is None or self._running_s > HANDOVER_S:
             return list(u)
         step = self.max_step_rad_s2 * dt_s
         # Toward zero only: a command growing is the limiter's ramp plus what the wheel lacks (a runaway
