@@ -26,8 +26,8 @@ only what the feedforward gets wrong is corrected (1.7 % there).
   angular): a loop taking over a moving rover (from the autopilot's own demand, which it does not close)
   does not cut a wheel faster than the limiter would (a real Rover SITL, AUTO -> MANUAL at 2.7 m/s: 118
   us in one 50 ms period against the limiter's 63 us, the rover lagging the limiter's braking ramp).
-  Only then: a loop that has been driving brakes along the ramp as hard as its correction asks (slewed
-  always, a go-to on the real SITL stopped 0.58 m past its target, against 0.5 m allowed). A growing
+  Only then: a loop that has been driving brakes along the ramp as hard as its correction asks, as it
+  always has (every other closed-loop behaviour unchanged). A growing
   command is not slewed (the ramp plus what a weak wheel lacks; how fast a miswired loop runs away is what
   the wiring monitor tells faults apart by), nor a stop: a zero target is neutral at once.
 - Resets: targets of zero (neutral, idle, timeout done, link lost, disarmed, refused, stopped) clear
