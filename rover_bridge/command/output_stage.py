@@ -52,10 +52,7 @@ class OutputStage:
         self.period_s = 1.0 / profile.command.rate_hz
         c = profile.control
         ranges = (self.outputs.speed_range(left=True), self.outputs.speed_range(left=False))
-        lim, robot = profile.limits, profile.robot
-        wheel_accel_rad_s2 = (max(lim.max_linear_accel_m_s2, lim.max_linear_decel_m_s2)
-                              + lim.max_angular_accel_rad_s2 * robot.track_width_m / 2.0) / robot.wheel_radius_m
-        self.loop = WheelSpeedLoop(c, *ranges, wheel_accel_rad_s2) if c.mode == "closed_loop" else None
+        self.loop = WheelSpeedLoop(c, *ranges, self._wheel_accel_rad_s2()) if c.mode == "closed_loop" else None
         self.wiring = WiringMonitor(c, *ranges)
         self.last_wheel_pwm: WheelPwm | None = None
         self.last_output_s: float | None = None
@@ -65,6 +62,13 @@ class OutputStage:
         self._loop_closed = True  # said once when it changes
         self.slipping = False
         self._slip_hold: WheelSpeeds | None = None
+
+    def _wheel_accel_rad_s2(self) -> float:
+        """The fastest a wheel's speed changes within the limiter's limits (both axes at once, either turn)."""
+        lim = self.limiter.limits
+        a = max(lim.accel_m_s2, lim.decel_m_s2)
+        wheels = [self.drive.to_wheel_speeds(Twist2D(a, turn)) for turn in (lim.alpha_rad_s2, -lim.alpha_rad_s2)]
+        return max(max(abs(w.left_rad_s), abs(w.right_rad_s)) for w in wheels)
 
     # ----------------------------------------------------------------- the limiter
 

@@ -27,9 +27,9 @@ only what the feedforward gets wrong is corrected (1.7 % there).
   does not cut a wheel faster than the limiter would (a real Rover SITL, AUTO -> MANUAL at 2.7 m/s: 118
   us in one 50 ms period against the limiter's 63 us, the rover lagging the limiter's braking ramp).
   Only then: a loop that has been driving brakes along the ramp as hard as its correction asks, as it
-  always has (every other closed-loop behaviour unchanged). A growing
-  command is not slewed (the ramp plus what a weak wheel lacks; how fast a miswired loop runs away is what
-  the wiring monitor tells faults apart by), nor a stop: a zero target is neutral at once.
+  always has (every other closed-loop behaviour unchanged). A growing command is not slewed (the ramp
+  plus what a weak wheel lacks; how fast a miswired loop runs away is what the wiring monitor tells
+  faults apart by), nor a stop: a zero target is neutral at once.
 - Resets: targets of zero (neutral, idle, timeout done, link lost, disarmed, refused, stopped) clear
   the integrators and give zero: a stop never kicks a wheel backwards. A non-zero target is never
   answered with the opposite direction either (braking is the limiter's ramp, not reverse thrust).
@@ -168,6 +168,7 @@ class WheelSpeedLoop:
         if targets == (0.0, 0.0):
             self.reset()
             return LoopResult(target, False, False)
+        self._running_s += dt_s
         follow = 1.0 - math.exp(-dt_s / self.reference_s) if dt_s > 0.0 else 0.0
         measured = self.measured
         if measured is None or not self.current(now_s):
@@ -211,7 +212,6 @@ class WheelSpeedLoop:
     def _slew(self, u: list[float], dt_s: float) -> list[float]:
         """Each wheel's command at most max_step_rad_s2 * dt_s from the last one (module docstring)."""
         last = self._last
-        self._running_s += dt_s
         if last is None or self._running_s > HANDOVER_S:
             return list(u)
         step = self.max_step_rad_s2 * dt_s
