@@ -42,10 +42,12 @@ from rover_bridge.estimate.models import (
     wheel_rates,
     wheel_rates_jacobian,
 )
+from rover_bridge.estimate.wheel_judge import STILL_SETTLE_S
 from rover_bridge.odometry import Pose2D, arc_factors
 
 L = 0.30
-ROWS = [(True, True), (True, False), (False, True)]  # (wheels, gyro): the updates the filter makes
+# (wheels, gyro, still): the updates the filter makes (a standstill's yaw rate comes with the wheels' rows)
+ROWS = [(True, True, False), (True, False, False), (False, True, False), (True, True, True), (True, False, True)]
 
 
 def _numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:  # type: ignore[no-untyped-def]
@@ -93,11 +95,11 @@ def test_motion_jacobian_matches_finite_differences(dt_s: float) -> None:
         np.testing.assert_allclose(F_jacobian(x, dt_s, L), numeric, atol=2e-7, rtol=1e-6)
 
 
-@pytest.mark.parametrize(("wheels", "gyro"), ROWS)
-def test_measurement_jacobians_match_finite_differences(wheels: bool, gyro: bool) -> None:
+@pytest.mark.parametrize(("wheels", "gyro", "still"), ROWS)
+def test_measurement_jacobians_match_finite_differences(wheels: bool, gyro: bool, still: bool) -> None:
     for x in _random_states(12, seed=11):
-        numeric = _numeric_jacobian(lambda s: hx(s, L, wheels, gyro), x)
-        np.testing.assert_allclose(H_jacobian(x, L, wheels, gyro), numeric, atol=1e-7, rtol=1e-6)
+        numeric = _numeric_jacobian(lambda s: hx(s, L, wheels, gyro, still), x)
+        np.testing.assert_allclose(H_jacobian(x, L, wheels, gyro, still), numeric, atol=1e-7, rtol=1e-6)
         np.testing.assert_allclose(wheel_rates_jacobian(x, L), _numeric_jacobian(
             lambda s: np.array(wheel_rates(s, L)), x), atol=1e-7, rtol=1e-6)
 
@@ -217,22 +219,23 @@ def test_the_prediction_is_the_extended_filters(seed: int, calibrate: bool) -> N
         assert kf.P[IKT, IKT] == P[IKT, IKT] and kf.P[IKR, IKR] == P[IKR, IKR]
 
 
-@pytest.mark.parametrize(("wheels", "gyro"), ROWS)
+@pytest.mark.parametrize(("wheels", "gyro", "still"), ROWS)
 @pytest.mark.parametrize("seed", range(10))
-def test_the_update_is_filterpys_extended_kalman_filter(seed: int, wheels: bool, gyro: bool) -> None:
+def test_the_update_is_filterpys_extended_kalman_filter(seed: int, wheels: bool, gyro: bool, still: bool) -> None:
     # KalmanFilter's update on z - h(x) + H x is ExtendedKalmanFilter's update with h, H and the wrapped
     # residual: the same gain, the same Joseph P.
     rng = np.random.default_rng(seed)
     x, P = _random_states(1, seed)[0], _random_covariance(rng)
-    z = hx(x, L, wheels, gyro) + rng.normal(0.0, 0.01, 2 * wheels + gyro)
+    z = hx(x, L, wheels, gyro, still) + rng.normal(0.0, 0.01, 2 * wheels + still + gyro)
     if wheels:
         z[1] += 2.0 * math.pi  # the wheels' heading a turn away: the same heading
     R = np.diag(rng.uniform(1e-5, 1e-3, len(z)))
     kf = _arc_filter(x, P, calibrate=True)
-    kf.update_rows(z, R, wheels, gyro)
+    kf.update_rows(z, R, wheels, gyro, still=still)
     ref = ExtendedKalmanFilter(dim_x=N_STATES, dim_z=len(z))
     ref.x, ref.P = x.copy(), P.copy()
-    ref.update(z, H_jacobian, hx, R=R, args=(L, wheels, gyro), hx_args=(L, wheels, gyro), residual=residual)
+    ref.update(z, H_jacobian, hx, R=R, args=(L, wheels, gyro, still), hx_args=(L, wheels, gyro, still),
+               residual=residual)
     np.testing.assert_allclose(kf.x, ref.x, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(kf.P, ref.P, rtol=1e-7, atol=1e-13)
 
@@ -532,3 +535,34 @@ def test_wheels_found_disagreeing_give_back_the_turn_the_yaw_followed() -> None:
     assert errors[-1] < 0.75 * errors[-2]  # and gave back what the window saw of it
     # their heading is what they measured: yaw + error
     assert float(ekf.x[IYAW] + ekf.x[IWY]) == pytest.approx(wheel_heading, abs=1e-3)
+
+
+def test_a_settled_standstill_teaches_the_bias_that_distrusted_wheels_cannot() -> None:
+    # A moving start on a right wheel 2 % large: distrusted within a second, the wheels teach nothing, and their
+    # heading row no longer holds the yaw at rest either. Stopped, they still bound the body's yaw rate (wheels
+    # that do not turn hold the body still, whatever their geometry): after STILL_SETTLE_S the gyro's reading is
+    # its bias. The motors' tail before that is not taken for one.
+    bias = 0.004
+    ekf = WheelGyroEKF(L)
+    t, dt = 0.0, 0.05
+    while t < 10.0 - 1e-9:
+        v = min(0.8, 0.2 + 0.8 * t / 1.5)  # the speed rises: a drift that grows with it is no bias
+        t += dt
+        ekf.update_gyro(t, bias)
+        ekf.update_wheels(t, v * dt, 1.02 * v * dt, dt, gyro_omega_rad_s=bias)
+    assert not ekf.wheels_trusted
+    before = float(ekf.x[IB])
+    assert abs(before - bias) > 0.002  # nothing taught it yet
+    stop = t
+    while t < stop + STILL_SETTLE_S - dt - 1e-9:  # not settled: the motors' tail may still turn the body
+        t += dt
+        ekf.update_gyro(t, bias + 0.02)
+        ekf.update_wheels(t, 0.0, 0.0, dt, gyro_omega_rad_s=bias + 0.02)
+    assert float(ekf.x[IB]) == pytest.approx(before, abs=1e-5)
+    while t < stop + 6.0 - 1e-9:
+        t += dt
+        ekf.update_gyro(t, bias)
+        ekf.update_wheels(t, 0.0, 0.0, dt, gyro_omega_rad_s=bias)
+    assert not ekf.wheels_trusted
+    assert float(ekf.x[IB]) == pytest.approx(bias, abs=0.0005)
+    assert math.sqrt(float(ekf.P[IB, IB])) < 0.002

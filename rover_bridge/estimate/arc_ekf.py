@@ -72,17 +72,17 @@ class ArcKalmanFilter(KalmanFilter):  # type: ignore[misc]  # filterpy has no ty
         self.Q = process_noise(x, dt_s, self.learn_geometry)
         self.predict(u=x_new - F.dot(x))
 
-    def linearise(self, wheels: bool, gyro: bool) -> tuple[Mat, Vec]:
+    def linearise(self, wheels: bool, gyro: bool, still: bool = False) -> tuple[Mat, Vec]:
         """(H, h(x)) of those rows at the state: what update_rows takes, for a caller that gates on them first."""
-        h, H = measurement(self.x, self.track_width_m, wheels, gyro)
+        h, H = measurement(self.x, self.track_width_m, wheels, gyro, still)
         return H, h
 
     def update_rows(self, z: Vec, R: Mat, wheels: bool, gyro: bool,
-                    linearised: tuple[Mat, Vec] | None = None) -> None:
-        """The update of the wheels' [speed, heading] rows and/or the gyro's (models.hx), linearised at the
-        state (`linearised`: linearise()'s, if the caller has it)."""
+                    linearised: tuple[Mat, Vec] | None = None, still: bool = False) -> None:
+        """The update of the wheels' [speed, heading] rows (with the standstill's yaw rate) and/or the gyro's
+        (models.hx), linearised at the state (`linearised`: linearise()'s, if the caller has it)."""
         x = self.x
-        H, h = linearised if linearised is not None else self.linearise(wheels, gyro)
+        H, h = linearised if linearised is not None else self.linearise(wheels, gyro, still)
         self.dim_z = len(z)
         self.R = R
         self.update(residual(z, h) + H.dot(x), H=H)

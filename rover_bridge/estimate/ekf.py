@@ -330,12 +330,13 @@ class WheelGyroEKF:
             self.sampling.alpha_rad_s2 = 0.0
         P[IWY, IWY] = j.heading_var  # slip, or the wheels not trusted: their heading error is free
         self._heading_jump(x, P)
-        H, h = linearised = kf.linearise(True, self._pending_gyro is not None)  # the update's: its speed row gates
+        still = j.r_still is not None
+        H, h = linearised = kf.linearise(True, self._pending_gyro is not None, still)  # the update's: speed row gates
         y = j.z_v - float(h[0])
         d2 = y * y / (float(H[0].dot(P).dot(H[0])) + j.r_v)
         accepted = self.wheels_gate.passes(d2)
         if accepted:
-            self._update((j.z_v, j.r_v), linearised)
+            self._update((j.z_v, j.r_v), linearised, j.r_still)
             x = kf.x
             q = float(x[IKR])
             missed_m = self.sampling.wheels(t_s, float(x[IV]), None if j.slip else
@@ -370,23 +371,26 @@ class WheelGyroEKF:
             self.heading_jumps += 1
             P[IWY, IWY] += y * y
 
-    def _update(self, wheels: tuple[float, float] | None, linearised: tuple[Mat, Vec] | None = None) -> None:
+    def _update(self, wheels: tuple[float, float] | None, linearised: tuple[Mat, Vec] | None = None,
+                r_still: float | None = None) -> None:
         """One filterpy update of the waiting gyro sample (if any) and the wheels' (speed z, variance) with
-        their heading (if given); `linearised`: those rows' (H, h(x)) if already known."""
-        kf = self._kf
-        gyro = self._pending_gyro
-        self._pending_gyro = None
+        their heading (if given) and a standstill's zero yaw rate (variance r_still, if given); `linearised`:
+        those rows' (H, h(x)) if already known."""
+        kf, gyro, self._pending_gyro = self._kf, self._pending_gyro, None
         z: list[float] = []
         r: list[float] = []
         if wheels is not None:
             z += [wheels[0], self.wheel_yaw_rad]
             r += [wheels[1], self._heading_var]
+            if r_still is not None:
+                z.append(0.0)
+                r.append(r_still)
         if gyro is not None:
             z.append(gyro[1])
             r.append(self._gyro_var)
         R = np.zeros((len(r), len(r)))
         R.flat[:: len(r) + 1] = r
-        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None, linearised)
+        kf.update_rows(np.array(z), R, wheels is not None, gyro is not None, linearised, r_still is not None)
         kf.x[IYAW] = wrap_angle(float(kf.x[IYAW]))
 
     # -- resets

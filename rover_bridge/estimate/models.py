@@ -20,6 +20,7 @@ Measurements
   as a rate per interval it is 20-70 times the gyro's noise and would leave the heading to the gyro
   alone. Predicted: v_wheels from (v, omega) and the geometry (mean wheel scale 1: the overall
   distance scale is not observable without an absolute reference), yaw_wheels = yaw + error.
+- standstill (with the wheels' rows, once settled, while they are distrusted): z = omega = 0.
 - gyro: z = omega + bias.
 
 So the wheels hold the heading as long as they agree with the gyro; when they do not, the
@@ -209,30 +210,35 @@ def process_noise(x: Vec | Floats, dt_s: float, learn_geometry: bool = True) -> 
 
 # ---------------------------------------------------------------- measurements
 
-def measurement(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> tuple[Vec, Mat]:
-    """Measurement model and its Jacobian, (hx, H): the wheels' [speed, heading] (if `wheels`), then the gyro's
-    rate (if `gyro`)."""
+def measurement(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True, still: bool = False
+                ) -> tuple[Vec, Mat]:
+    """Measurement model and its Jacobian, (hx, H): the wheels' [speed, heading] (if `wheels`) and, at a
+    standstill (`still`), the body's yaw rate they bound, then the gyro's rate (if `gyro`)."""
     _, _, yaw, v, w, bias, kt, q, wheel_yaw = x.tolist()
-    H = np.zeros((2 * wheels + gyro, N_STATES))
+    still = still and wheels
+    H = np.zeros((2 * wheels + still + gyro, N_STATES))
     z: list[float] = []
     if wheels:
         z += [wheel_rates_of(v, w, kt, q, track_width_m)[0], yaw + wheel_yaw]
         H[0, IV], H[0, IW], H[0, IKT], H[0, IKR] = wheel_rate_partials(v, w, kt, q, track_width_m)[0]
         H[1, IYAW] = H[1, IWY] = 1.0
+    if still:  # wheels that stand still hold the body still, whatever their geometry
+        z.append(w)
+        H[2, IW] = 1.0
     if gyro:
         z.append(w + bias)
         H[-1, IW] = H[-1, IB] = 1.0
     return np.array(z), H
 
 
-def hx(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> Vec:
+def hx(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True, still: bool = False) -> Vec:
     """Predicted z (measurement)."""
-    return measurement(x, track_width_m, wheels, gyro)[0]
+    return measurement(x, track_width_m, wheels, gyro, still)[0]
 
 
-def H_jacobian(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True) -> Mat:
+def H_jacobian(x: Vec, track_width_m: float, wheels: bool = True, gyro: bool = True, still: bool = False) -> Mat:
     """d hx / d x (measurement)."""
-    return measurement(x, track_width_m, wheels, gyro)[1]
+    return measurement(x, track_width_m, wheels, gyro, still)[1]
 
 
 def residual(z: Vec, h: Vec) -> Vec:
