@@ -10,7 +10,8 @@ steps of it:
   control input, what the exact arc adds to F x (B = I, u = fx(x) - F x): x becomes fx(x), P becomes F P F' + Q;
 - update: filterpy's update with H from models.measurement and z - h(x) + H x as the measurement: its
   innovation z - H x is then the model's z - h(x) (models.residual: the heading's wrapped); its gain,
-  Joseph's form for P. Any of the measurement rows (the wheels' two, the gyro's one, the three at once).
+  Joseph's form for P. Any of the measurement rows (the wheels' two, with a settled standstill's yaw rate
+  three, the gyro's one, or all of them at once).
 
 Why not filterpy's ExtendedKalmanFilter, which does the same with callbacks: its update inverts S with
 scipy.linalg.inv, whose validation and LAPACK lookup made it the largest cost of a filter cycle in the
