@@ -162,3 +162,28 @@ def test_the_demo_stamps_the_true_yaw_with_the_wheel_reading_of_its_step_wheneve
     errs = errors_over_time(demo.series)
     assert len(errs) > 30
     assert max(e[4] for e in errs) < 0.05  # degrees; pairing with the last position stamp gave 2.1 deg
+
+
+def test_the_demo_judges_each_estimate_at_its_own_samples_not_between_them() -> None:
+    # A turn whose rate changes (10 rad/s^2), the truth's yaw at 50 Hz (the wheels' stamps), positions at 20 Hz.
+    # Both estimates are exact at their own stamps, the wheels at 50 Hz and the EKF at the 33-48 ms ODOMETRY of a
+    # real-time run. A straight line across the EKF's gaps put 0.15 deg on it that no message carried.
+    from rover_bridge.app.demo import Series, errors_over_time
+
+    def yaw(t: float) -> float:
+        return 5.0 * (t - 10.0) ** 2  # CW rad, from rest at 10 s
+
+    series = Series()
+    series.truth = [(10.0 + 0.05 * k, 0.0, 0.0, 0.0) for k in range(41)]
+    series.truth_yaw = [(10.0 + 0.02 * k, yaw(10.0 + 0.02 * k)) for k in range(101)]
+    series.wheel = [(t, 0.0, 0.0, y) for t, y in series.truth_yaw]
+    stamps, t = [], 10.0
+    while t <= 12.0:
+        stamps.append(t)
+        t += 0.048 if len(stamps) % 2 else 0.033
+    series.ekf = [(s, 0.0, 0.0, yaw(s)) for s in stamps]
+    errs = errors_over_time(series)
+    assert len(errs) > 35
+    assert max(e[3] for e in errs) < 1e-9  # the wheels, at the truth's own stamps
+    # the EKF between the truth's 20 ms samples: at most their straight line's error (0.03 deg at 10 rad/s^2)
+    assert max(e[4] for e in errs) < 0.03

@@ -234,19 +234,38 @@ def _interp_yaw(samples: list[tuple[float, float]], t: float) -> float | None:
     return y0 + (t - t0) / (t1 - t0) * _wrap(y1 - y0) if t1 > t0 else y1
 
 
+def _error_at(estimate: list[tuple[float, float, float, float]], t: float, series: Series
+              ) -> tuple[float, float] | None:
+    """(position error, heading error in degrees) of the estimate's sample nearest t, against the truth at that
+    sample's own stamp; None outside the estimate's or the truth's time span. An estimate is judged where it
+    was published, not between its samples: the EKF's ODOMETRY is 33-48 ms apart in real time, and a straight
+    line drawn across such a gap while a turn's rate changed put up to 0.1 deg on it that no message carried
+    (the wheels, at the truth yaw's own 20 ms stamps, drew none)."""
+    if not estimate or t < estimate[0][0] or t > estimate[-1][0]:
+        return None
+    i = bisect.bisect_left(estimate, (t, -math.inf, -math.inf, -math.inf))
+    if i == len(estimate) or (i > 0 and t - estimate[i - 1][0] < estimate[i][0] - t):
+        i -= 1
+    ts, a, b, yaw = estimate[i]
+    truth = _interp(series.truth, ts)
+    true_yaw = _interp_yaw(series.truth_yaw, ts) if series.truth_yaw else None if truth is None else truth[2]
+    if truth is None or true_yaw is None:
+        return None
+    return math.hypot(a - truth[0], b - truth[1]), abs(math.degrees(_wrap(yaw - true_yaw)))
+
+
 def errors_over_time(series: Series) -> list[tuple[float, float, float, float, float]]:
     """(t since the first truth sample, wheel position error, EKF position error, wheel and EKF heading
-    errors in degrees), at each ground-truth sample inside both estimates' time spans."""
+    errors in degrees), at each ground-truth sample inside both estimates' time spans (each estimate's
+    nearest sample, against the truth at its stamp: _error_at)."""
     out = []
     t0 = series.truth[0][0] if series.truth else 0.0
-    for t, n, e, _last_yaw in series.truth:
-        w = _interp(series.wheel, t)
-        k = _interp(series.ekf, t)
-        yaw = _interp_yaw(series.truth_yaw, t) if series.truth_yaw else _last_yaw
-        if w is None or k is None or yaw is None:
+    for t, _n, _e, _last_yaw in series.truth:
+        w = _error_at(series.wheel, t, series)
+        k = _error_at(series.ekf, t, series)
+        if w is None or k is None:
             continue
-        out.append((t - t0, math.hypot(w[0] - n, w[1] - e), math.hypot(k[0] - n, k[1] - e),
-                    abs(math.degrees(_wrap(w[2] - yaw))), abs(math.degrees(_wrap(k[2] - yaw)))))
+        out.append((t - t0, w[0], k[0], w[1], k[1]))
     return out
 
 
