@@ -11,11 +11,12 @@ whether the wheels' heading is trusted.
   not slip) and at least SLIP_GEOMETRY's geometry uncertainty (a rover whose geometry is off is not
   slipping). On slip the speed is the one the slower wheel and the gyro give (a slipping wheel turns
   faster than the ground under it), and the wheels' heading error takes the disagreement.
-- A step: the interval's disagreement beyond STEP_SIGMA without the spread's allowance (the gyro's
-  rate jumped and the wheels did not follow: slip starting or ending within the interval, which the
-  spread hides from the slip test). Its turn is unknown, so the wheels' heading error takes the
-  disagreement as on slip; the speed is fused as usual. Without this the wheels' heading pulled the
-  yaw at each slip edge (accuracy.py slip: 0.7-0.9 deg per edge, 3.1 deg worst of seeds 1-9). The interval
+- A step: the interval's disagreement beyond STEP_SIGMA without the spread's allowance, and beyond a
+  count's rounding on each wheel (the gyro's rate jumped and the wheels did not follow: slip starting or
+  ending within the interval, which the spread hides from the slip test). Its turn is unknown, so the
+  wheels' heading error takes the disagreement as on slip; the speed is fused as usual. Without this the
+  wheels' heading pulled the yaw at each slip edge (accuracy.py slip: 0.7-0.9 deg per edge, 3.1 deg worst
+  of seeds 1-9). The interval
   after a step settles the same way (without being a step): the body's rate can still overshoot what the
   wheels show there (a real Rover SITL's turn onset: gyro 3 % above the wheels for one 0.1 s interval).
   Learnt from, that one interval taught the track 2.8 % off with 0.4 % sigma, and the consistency window
@@ -58,11 +59,13 @@ SLIP_V_VAR_FACTOR = 100.0  # slip without a gyro: the wheels' speed variance tim
 SLIP_OTHER_WHEEL_VAR_FACTOR = 4.0  # slip: the other wheel may slip a little too
 SLIP_YAW_FACTOR = 2.0  # slip: the heading error takes this many times the disagreement (1 sigma)
 # A step (module docstring): the disagreement without the spread's allowance beyond this many sigma. A rate that
-# changes through the motors' lag stays far inside it (no step in clean runs of accuracy.py or the demo's route),
-# slip edges far outside (accuracy.py slip: the same at 2 and 3). At 2 a spin's onset in real time was one: the
-# wheels' counts (0.3 mm) read 0.2 rad/s over 20 ms against the gyro's mean of 0.125, 2.3 sigma, and the EKF
-# kept the 0.1 deg that freeing its heading cost (rover-bridge demo, about one run in twenty).
-STEP_SIGMA = 3.0
+# changes through the motors' lag stays far inside it (no step in clean runs of accuracy.py or the demo's route).
+STEP_SIGMA = 2.0
+# ... and more than rounding: a reading is off by up to half a count (wheel_noise_m is that error's sigma, a
+# count's sqrt(12)th), so an interval's turn by up to a count on each wheel. A spin's onset in real time read
+# 0.2 rad/s over 20 ms on the wheels against the gyro's mean of 0.125: 2.3 sigma, but 0.7 of a count a wheel;
+# taken for a step, it freed the heading and the EKF kept 0.1 deg against exact wheels (one demo run in twenty).
+STEP_ROUNDING_COUNTS = 1.0
 STATIONARY_SIGMA_V_M_S = 1e-3
 # A standstill bounds the yaw rate (each wheel within its speed bound) once the motors' tail has died out:
 # a body still creeping after a spin reads no count for a while (1024 counts a turn: 0.3 mm).
@@ -153,7 +156,8 @@ class WheelJudge:
             self.window.clear()
             z_v, r_v = self._slip_speed(w, x, r_v)
             return WheelJudgement(z_v, r_v, True, False, d2, max(self._distrust_var(P), slip_var))
-        step = step_d2 > STEP_SIGMA ** 2
+        rounding_rad = 2.0 * STEP_ROUNDING_COUNTS * math.sqrt(12.0) * self.noise.wheel_noise_m / L
+        step = step_d2 > STEP_SIGMA ** 2 and abs(y) * w.dt_s > rounding_rad
         settling, self._after_step = self._after_step, step
         if step or settling:  # the yaw did not follow the wheels here (or may still lag them): nor does the window
             self.window.clear()
