@@ -239,7 +239,7 @@ def _error_at(estimate: list[tuple[float, float, float, float]], t: float, serie
     """(position error, heading error in degrees) of the estimate's sample nearest t, against the truth at that
     sample's own stamp; None outside the estimate's or the truth's time span. An estimate is judged where it
     was published, not between its samples: the EKF's ODOMETRY is 33-48 ms apart in real time, and a straight
-    line drawn across such a gap while a turn's rate changed put up to 0.1 deg on it that no message carried
+    line drawn across such a gap while a turn's rate changed put 0.05 deg on it that no message carried
     (the wheels, at the truth yaw's own 20 ms stamps, drew none)."""
     if not estimate or t < estimate[0][0] or t > estimate[-1][0]:
         return None
