@@ -248,8 +248,10 @@ def _error_at(estimate: list[tuple[float, float, float, float]], t: float, serie
         i -= 1
     ts, a, b, yaw = estimate[i]
     truth = _interp(series.truth, ts)
-    true_yaw = _interp_yaw(series.truth_yaw, ts) if series.truth_yaw else None if truth is None else truth[2]
-    if truth is None or true_yaw is None:
+    if truth is None:
+        return None
+    true_yaw = _interp_yaw(series.truth_yaw, ts) if series.truth_yaw else truth[2]
+    if true_yaw is None:
         return None
     return math.hypot(a - truth[0], b - truth[1]), abs(math.degrees(_wrap(yaw - true_yaw)))
 
@@ -260,7 +262,7 @@ def errors_over_time(series: Series) -> list[tuple[float, float, float, float, f
     nearest sample, against the truth at its stamp: _error_at)."""
     out = []
     t0 = series.truth[0][0] if series.truth else 0.0
-    for t, _n, _e, _last_yaw in series.truth:
+    for t, *_ in series.truth:
         w = _error_at(series.wheel, t, series)
         k = _error_at(series.ekf, t, series)
         if w is None or k is None:

@@ -16,12 +16,11 @@ whether the wheels' heading is trusted.
   ending within the interval, which the spread hides from the slip test). Its turn is unknown, so the
   wheels' heading error takes the disagreement as on slip; the speed is fused as usual. Without this the
   wheels' heading pulled the yaw at each slip edge (accuracy.py slip: 0.7-0.9 deg per edge, 3.1 deg worst
-  of seeds 1-9). The interval
-  after a step settles the same way (without being a step): the body's rate can still overshoot what the
-  wheels show there (a real Rover SITL's turn onset: gyro 3 % above the wheels for one 0.1 s interval).
-  Learnt from, that one interval taught the track 2.8 % off with 0.4 % sigma, and the consistency window
-  then distrusted the right wheels against the wrong track for good (tests/data's SITL log: 1.590 m
-  calibrated against 1.633 m measured live; 1.635 m with the settling interval).
+  of seeds 1-9). The interval after a step settles the same way (without being a step): the body's rate can
+  still overshoot what the wheels show there (a real Rover SITL's turn onset: gyro 3 % above the wheels for
+  one 0.1 s interval). Learnt from, that one interval taught the track 2.8 % off with 0.4 % sigma, and the
+  consistency window then distrusted the right wheels against the wrong track for good (tests/data's SITL
+  log: 1.590 m calibrated against 1.633 m measured live; 1.635 m with the settling interval).
 - Trust (consistency.py): while the wheels and the gyro disagree, the wheels' heading error is free
   (the heading they predict, yaw + error, is DISTRUST_SIGMA_RAD uncertain: a floor on the error alone
   was none once the yaw was as uncertain, its mirror) and the gyro holds the heading; they are trusted
@@ -108,6 +107,8 @@ class WheelJudge:
         self.noise = noise
         self._gate2 = noise.gate_sigma ** 2
         self._reading_var = 2.0 * (noise.wheel_noise_m / track_width_m) ** 2  # one reading's heading noise
+        # a turn within this is the counts' rounding, not a step (STEP_ROUNDING_COUNTS)
+        self._rounding_rad = 2.0 * STEP_ROUNDING_COUNTS * math.sqrt(12.0) * noise.wheel_noise_m / track_width_m
         self._still_since_s: float | None = None  # start of the current standstill
         self.window = ConsistencyWindow()
         self.trusted = True  # the wheels' heading: trusted, or free while they disagree with the gyro
@@ -156,8 +157,7 @@ class WheelJudge:
             self.window.clear()
             z_v, r_v = self._slip_speed(w, x, r_v)
             return WheelJudgement(z_v, r_v, True, False, d2, max(self._distrust_var(P), slip_var))
-        rounding_rad = 2.0 * STEP_ROUNDING_COUNTS * math.sqrt(12.0) * self.noise.wheel_noise_m / L
-        step = step_d2 > STEP_SIGMA ** 2 and abs(y) * w.dt_s > rounding_rad
+        step = step_d2 > STEP_SIGMA ** 2 and abs(y) * w.dt_s > self._rounding_rad
         settling, self._after_step = self._after_step, step
         if step or settling:  # the yaw did not follow the wheels here (or may still lag them): nor does the window
             self.window.clear()
