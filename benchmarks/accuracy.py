@@ -15,8 +15,11 @@ the same WHEEL_DISTANCE data with the nominal geometry.
 
 Columns: distance driven; final position error in m and in % of the distance; maximum heading
 error over the run, in degrees; for raw wheel odometry, the EKF, and the EKF with calibration;
-then the calibrated track width, with what calibration can find (the track in the units of the
-reported distances: true track / mean true-to-nominal radius ratio) and the physical truth.
+"exact hdg": the final error of dead reckoning with the wheels' mean distance along the truth's heading,
+what an exact heading alone leaves (a wrong mean wheel radius scales the distance, which no gyro
+observes: miscalibrated's is 1 % large); then the calibrated track width, with what calibration can
+find (the track in the units of the reported distances: true track / mean true-to-nominal radius
+ratio) and the physical truth.
 
 --wheels compares as `rover-bridge demo` does, on its route (a standstill, a straight, a spin, four legs, a
 figure eight; --moving: no standstill): the published ODOMETRY series and the wheel odometry integrated
@@ -75,6 +78,10 @@ class Result:
     raw: Track = field(default_factory=Track)
     ekf: Track = field(default_factory=Track)
     cal: Track = field(default_factory=Track)
+    # Dead reckoning with the wheels' nominal mean distance along the truth's heading: what a filter whose
+    # heading were exact would reach. A mean wheel radius that is off scales the distance, which no gyro
+    # observes: a wheel + gyro estimator is not bound to do better (errors of heading and scale may cancel).
+    exact_heading: Track = field(default_factory=Track)
     cal_track_m: float = 0.0
     true_track_m: float = 0.0
     # What calibration can find: the track in the units of the reported wheel distances. The mean
@@ -111,6 +118,9 @@ def run(name: str, vehicle: VehicleConfig, scenario: Scenario, quick: bool, seed
     t0 = emu.truth
     seen = 0
     now = 0.0
+    exact_xy = [0.0, 0.0]
+    wheel_mean_m: float | None = None  # the last WHEEL_DISTANCE's mean nominal distance
+    yaw_before = 0.0  # the truth's heading at the last WHEEL_DISTANCE
 
     def truth_pose() -> Pose2D:
         tr = emu.truth
@@ -132,10 +142,18 @@ def run(name: str, vehicle: VehicleConfig, scenario: Scenario, quick: bool, seed
             emu.step(STEP_S)
             now = emu.sim_time_s
             assert emu.sent_log is not None
+            yaw_now = truth_pose().yaw_rad
             for sent_s, msg in emu.sent_log[seen:]:
                 if msg.get_type() == "WHEEL_DISTANCE" and (
                         drop_rng.random() < wheel_loss or any(a <= sent_s < b for a, b in wheel_gaps)):
                     continue
+                if msg.get_type() == "WHEEL_DISTANCE":
+                    mean_m = 0.5 * (float(msg.distance[0]) + float(msg.distance[1]))
+                    if wheel_mean_m is not None:  # along the truth's mean heading since the last reading
+                        yaw_mid = yaw_before + 0.5 * math.remainder(yaw_now - yaw_before, 2 * math.pi)
+                        exact_xy[0] += math.cos(yaw_mid) * (mean_m - wheel_mean_m)
+                        exact_xy[1] += math.sin(yaw_mid) * (mean_m - wheel_mean_m)
+                    wheel_mean_m, yaw_before = mean_m, yaw_now
                 inc = Incoming(Link.AUTOPILOT, msg)
                 for out in ekf.handle(inc, sent_s).out:
                     if out.dest is Link.AUTOPILOT:
@@ -151,6 +169,7 @@ def run(name: str, vehicle: VehicleConfig, scenario: Scenario, quick: bool, seed
             if ekf.state.time_s is None:
                 continue
             truth = truth_pose()
+            track(res.exact_heading, Pose2D(exact_xy[0], exact_xy[1], truth.yaw_rad), truth)
             track(res.raw, ekf.raw_pose, truth)
             track(res.ekf, ekf.pose_at(now), truth)
             if with_calibration:
@@ -187,7 +206,7 @@ def scenarios(quick: bool, seed: int = 1, moving: bool = False) -> list[Result]:
 def table(results: list[Result], seeds: list[int] | None = None) -> str:
     """One row per result (with its seed when `seeds` is given), then the worst of each scenario over them."""
     head = (f"{'scenario':<18} {'seed':>4} {'dist m':>7} | {'raw m':>6} {'%':>5} {'hdg':>6} | {'EKF m':>6} {'%':>5} "
-            f"{'hdg':>5} | {'cal m':>6} {'%':>5} {'hdg':>5} | track m (expected; true)")
+            f"{'hdg':>5} | {'cal m':>6} {'%':>5} {'hdg':>5} | {'exact hdg %':>11} | track m (expected; true)")
     lines = [head, "-" * len(head)]
 
     def cells(t: Track, dist_m: float) -> str:
@@ -196,7 +215,8 @@ def table(results: list[Result], seeds: list[int] | None = None) -> str:
     for k, r in enumerate(results):
         seed = "" if seeds is None else str(seeds[k])
         lines.append(f"{r.name:<18} {seed:>4} {r.dist_m:7.1f} | {cells(r.raw, r.dist_m)} | {cells(r.ekf, r.dist_m)} | "
-                     f"{cells(r.cal, r.dist_m)} | {r.cal_track_m:.4f} ({r.expected_track_m:.4f}; {r.true_track_m:.4f})")
+                     f"{cells(r.cal, r.dist_m)} | {100 * r.exact_heading.final_pos_m / r.dist_m:11.2f} | "
+                     f"{r.cal_track_m:.4f} ({r.expected_track_m:.4f}; {r.true_track_m:.4f})")
     if seeds is not None and len(set(seeds)) > 1:
         lines.append("worst over the seeds: % of the distance, heading deg")
         for name in dict.fromkeys(r.name for r in results):
@@ -205,8 +225,9 @@ def table(results: list[Result], seeds: list[int] | None = None) -> str:
             def worst(get: Any, rs: list[Result] = rs) -> str:
                 pct = max(100 * get(r).final_pos_m / r.dist_m for r in rs)
                 return f"{pct:5.2f} % {max(math.degrees(get(r).max_heading_rad) for r in rs):5.1f} deg"
+            exact = max(100 * r.exact_heading.final_pos_m / r.dist_m for r in rs)
             lines.append(f"{name:<18} raw {worst(lambda r: r.raw)} | EKF {worst(lambda r: r.ekf)} | "
-                         f"cal {worst(lambda r: r.cal)}")
+                         f"cal {worst(lambda r: r.cal)} | exact heading {exact:5.2f} %")
     return "\n".join(lines)
 
 
