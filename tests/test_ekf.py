@@ -278,8 +278,11 @@ def test_persistent_gyro_rejections_end_in_acceptance() -> None:
 
 def test_slip_detected_when_wheels_and_gyro_disagree() -> None:
     ekf = _settled()
-    # left wheel spins 50 % faster than the right at 0.5 m/s: wheels say -0.83 rad/s, the gyro 0
-    res = ekf.update_wheels(2.05, 0.0375, 0.025, 0.05, gyro_omega_rad_s=0.0)
+    # left wheel spins 50 % faster than the right at 0.5 m/s: wheels say -0.83 rad/s, the gyro 0; once is a
+    # step (wheel_judge), in two intervals running it is slip
+    first = ekf.update_wheels(2.05, 0.0375, 0.025, 0.05, gyro_omega_rad_s=0.0)
+    assert not first.slip and first.accepted
+    res = ekf.update_wheels(2.10, 0.0375, 0.025, 0.05, gyro_omega_rad_s=0.0)
     assert res.slip and res.accepted
     ekf2 = _settled()
     res2 = ekf2.update_wheels(2.05, 0.0251, 0.0249, 0.05, gyro_omega_rad_s=0.0)
@@ -289,9 +292,10 @@ def test_slip_detected_when_wheels_and_gyro_disagree() -> None:
 def test_slipping_wheels_leave_the_heading_to_the_gyro_and_the_speed_to_the_slower_wheel() -> None:
     ekf = _settled()
     yaw = ekf.pose.yaw_rad
-    ekf.update_gyro(2.05, 0.0)
-    ekf.update_wheels(2.05, 0.0375, 0.025, 0.05, gyro_omega_rad_s=0.0)
-    # the wheels alone would turn it 0.04 rad and say 0.625 m/s; the gyro holds the heading, the right
+    for t in (2.05, 2.10, 2.15):  # slip from the second interval on (wheel_judge)
+        ekf.update_gyro(t, 0.0)
+        ekf.update_wheels(t, 0.0375, 0.025, 0.05, gyro_omega_rad_s=0.0)
+    # the wheels alone would turn it 0.12 rad and say 0.625 m/s; the gyro holds the heading, the right
     # (slower) wheel gives the speed
     assert abs(ekf.pose.yaw_rad - yaw) < 1e-3
     assert abs(float(ekf.x[IW])) < 0.05

@@ -67,9 +67,37 @@ def test_slip_takes_the_speed_of_the_slower_wheel_and_frees_the_wheels_heading()
     judge = WheelJudge(L, NOISE)
     x, P = _state()
     # the left wheel spins 0.3 m/s faster than the ground; the right one and the gyro (0) say 0.5 m/s
-    j = judge.judge(DT, WheelInterval(0.8 * DT, 0.5 * DT, DT, 0.0), x, P)
+    first = judge.judge(DT, WheelInterval(0.8 * DT, 0.5 * DT, DT, 0.0), x, P)
+    assert first.step and not first.slip  # one interval past the gate: a step, the wheels' speed kept
+    assert first.z_v == pytest.approx(0.65)
+    j = judge.judge(2 * DT, WheelInterval(0.8 * DT, 0.5 * DT, DT, 0.0), x, P)  # it goes on: slip
     assert j.slip and j.z_v == pytest.approx(0.5)
     assert j.heading_var >= P[IWY, IWY] + (0.3 / L * DT) ** 2  # the disagreement, at least
+
+
+def test_a_yaw_that_wobbles_faster_than_the_samples_is_steps_not_slip() -> None:
+    # A real Rover SITL's go-to start on its 1.64 m model track: the skid model turns at once, and the wheels'
+    # yaw rate over each 40-60 ms interval swung -0.36, -0.49, -0.09, +0.23, -0.62 rad/s against the gyro's
+    # instants at the ends (the intervals below are that run's).
+    # Disagreements past the gate that change sign from one interval to the next are aliasing, not a
+    # spinning wheel: each is a step, and the speed stays the wheels' (taken for slip, the slower wheel and
+    # the gyro gave -0.02 m/s for a rover driving at +0.17 and the go-to stopped 0.9 m past its target).
+    track = 1.6370222718
+    judge = WheelJudge(track, NOISE)
+    x, P = _state(v=0.2, w=-0.3)
+    intervals = [(0.0193, -0.0163, 0.06, -0.0995, 0.097), (0.0189, -0.0129, 0.04, -0.2768, 0.081),
+                 (0.0147, 0.0056, 0.06, -0.3192, 0.038), (0.0039, 0.0189, 0.04, -0.1741, 0.107),
+                 (0.0294, 0.0202, 0.06, -0.0236, 0.044), (0.0413, 0.0010, 0.04, -0.0867, 0.107),
+                 (0.0625, 0.0127, 0.061, -0.3390, 0.146), (0.0254, 0.0294, 0.04, -0.4234, 0.061)]
+    t = 0.0
+    past_gate = 0
+    for dl, dr, dt, gyro, spread in intervals:
+        t += dt
+        j = judge.judge(t, WheelInterval(dl, dr, dt, gyro, spread), x, P)
+        past_gate += j.slip_d2 > NOISE.gate_sigma ** 2
+        assert not j.slip
+        assert j.z_v == pytest.approx(0.5 * (dl + dr) / dt, abs=0.1)  # the wheels' speed, not a slower one
+    assert past_gate >= 3  # the slip test's gate alone would have called these slip
 
 
 def test_the_wheels_heading_is_trusted_again_only_after_a_standstill_and_whole_agreeing_windows() -> None:
