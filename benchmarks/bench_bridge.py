@@ -1744,7 +1744,31 @@ def replay_frames(seconds: float) -> list[tuple[float, str, bool, bytes]]:
     return out
 
 
-def replay_main(seconds: float, repeats: int) -> dict[str, Any]:
+WITHOUT = ("judge", "update", "predict")  # replay --without: the filter's parts that can be made free
+
+
+def _without(part: str) -> None:
+    """Make one part of the filter cost nothing in this process (replay --without): what trimming it could
+    buy at most. judge: the first 50 wheel intervals are judged, every later one gets the 50th's verdict;
+    update / predict: filterpy's update / prediction (with the models it runs) are skipped."""
+    from rover_bridge.estimate import arc_ekf, wheel_judge
+
+    if part == "judge":
+        real = wheel_judge.WheelJudge.judge
+        memo: list[Any] = []
+
+        def judge(self: Any, t_s: float, w: Any, x: Any, P: Any) -> Any:  # noqa: N803
+            if len(memo) < 50:
+                memo.append(real(self, t_s, w, x, P))
+            return memo[-1]
+        wheel_judge.WheelJudge.judge = judge  # type: ignore[method-assign]
+    elif part == "update":
+        arc_ekf.ArcKalmanFilter.update_rows = lambda self, *a, **k: None  # type: ignore[method-assign]
+    elif part == "predict":
+        arc_ekf.ArcKalmanFilter.predict_arc = lambda self, dt_s: None  # type: ignore[method-assign]
+
+
+def replay_main(seconds: float, repeats: int, without: str | None = None) -> dict[str, Any]:
     """The replay of one tree (the rover_bridge this process imports): what bench_replay prints.
 
     Passes as the running bridge makes them at this load: the autopilot's frames are read in the pass of
@@ -1759,6 +1783,8 @@ def replay_main(seconds: float, repeats: int) -> dict[str, Any]:
     from rover_bridge.mavlink import fastcodec
     from rover_bridge.mavlink.wire import Incoming, Link
 
+    if without is not None:
+        _without(without)
     parser = mavlink.MAVLink(None)
     passes: list[tuple[float, list[tuple[float, str, Any, Any, int]], list[bytes]]] = []
     batch: list[tuple[float, str, Any, Any, int]] = []
@@ -1831,11 +1857,15 @@ def bench_replay(args: argparse.Namespace) -> None:
     # Each run in a fresh process, the trees taking turns (measured: the same tree read about 10 % cheaper in
     # this process than in a child, so both are children).
     roots = {"bridge": REPO, **({"base": Path(args.base).resolve()} if args.base else {})}
+    extra: dict[str, list[str]] = {name: [] for name in roots}
+    for part in args.without or ():
+        roots[f"bridge, {part} free"] = REPO
+        extra[f"bridge, {part} free"] = ["--without", part]
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in roots}
     for rep in range(args.repeats):
         for name in list(roots) if rep % 2 == 0 else list(roots)[::-1]:
-            done = subprocess.run(self_cmd("_replay", str(args.seconds), "1"), capture_output=True, text=True,
-                                  cwd=REPO, env=bridge_env(roots[name]), check=True)
+            done = subprocess.run(self_cmd("_replay", str(args.seconds), "1", *extra[name]), capture_output=True,
+                                  text=True, cwd=REPO, env=bridge_env(roots[name]), check=True)
             runs[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
     kinds = sorted({k for rs in runs.values() for r in rs for k in r["us"]})
     rows = []
@@ -1905,6 +1935,9 @@ def main(argv: list[str] | None = None) -> None:
     p = sub.add_parser("replay")
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--without", action="append", choices=WITHOUT,
+                   help="also replay this tree with that part of the filter costing nothing (repeatable): the most "
+                        "that trimming it could save")
     all_p = sub.add_parser("all")
     for sp in (sub.choices["latency"], sub.choices["throughput"], sub.choices["cpu"], sub.choices["regularity"],
                sub.choices["hotpath"], sub.choices["replay"], all_p):
@@ -1925,6 +1958,7 @@ def main(argv: list[str] | None = None) -> None:
     p = sub.add_parser("_replay")
     p.add_argument("seconds", type=float)
     p.add_argument("repeats", type=int)
+    p.add_argument("--without", choices=WITHOUT)
     args = parser.parse_args(argv)
     if args.cmd == "_echo":
         echo_main(args.port)
@@ -1935,7 +1969,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "_burn":
         burn_main(args.seconds, args.threads)
     elif args.cmd == "_replay":
-        print(json.dumps(replay_main(args.seconds, args.repeats)))
+        print(json.dumps(replay_main(args.seconds, args.repeats, args.without)))
     elif args.cmd == "all":
         with_base = ("hotpath", "replay", "latency", "throughput", "cpu", "regularity")
         for name in ("hotpath", "replay", "latency", "throughput", "cpu", "wakeup", "regularity", "memory", "startup"):
