@@ -16,7 +16,7 @@ whether the wheels' heading is trusted.
   samples (a real Rover SITL's go-to start: 0.2-0.6 rad/s each way every 50 ms, whose skid model turns
   at once) aliases between the gyro's instants and the wheels' means. Taken for slip, that wobble's
   "slower wheel" speed, with that model's 1.64 m track, read -0.56 m/s for a rover driving at +0.5, and
-  the go-to lost 0.75 m of its 4.9 m and stopped 0.9 m past its target.
+  the go-to lost about 0.8 m of its 4.9 m and stopped 0.9 m past its target.
 - A step: the interval's disagreement beyond STEP_SIGMA without the spread's allowance, and beyond a
   count's rounding on each wheel (the gyro's rate jumped and the wheels did not follow: slip starting or
   ending within the interval, which the spread hides from the slip test). Its turn is unknown, so the
