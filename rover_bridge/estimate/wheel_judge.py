@@ -160,7 +160,8 @@ class WheelJudge:
         d2, y, step_d2 = self._slip_test((w.d_right_m - w.d_left_m) / (L * w.dt_s), r_omega, w, x, P)
         slip_var = float(P[IWY, IWY]) + (SLIP_YAW_FACTOR * y * w.dt_s) ** 2
         past_gate = d2 > self._gate2
-        sustained, self._slip_y = past_gate and y * self._slip_y > 0.0, y if past_gate else 0.0
+        sustained = past_gate and y * self._slip_y > 0.0  # the interval before was past the gate the same way
+        self._slip_y = y if past_gate else 0.0
         if sustained:
             self._prev = None
             self._after_step = False
