@@ -539,9 +539,10 @@ def test_a_silent_gcs_lets_ardupilots_failsafe_act_through_the_bridge(sides: tup
         quiet = time.monotonic()
         last_beat = quiet - 1.0  # its last heartbeat went out within the second before
         assert mon.wait(lambda: side.sitl.mode() == expect, 30.0), mon.texts(quiet)
+        # ArduPilot queues the text and changes the mode at once: a HEARTBEAT may show the mode first.
+        assert mon.wait(lambda: failsafe_said(mon.texts(quiet)), 5.0), mon.texts(quiet)
         fired = [t for t, m in list(mon.messages) if t > quiet and m.get_type() == "STATUSTEXT"
                  and failsafe_said([m.text])]
-        assert fired
         final = side.settle_home(quiet) if expect == RTL else math.nan
         FIGURES.append(f"bridge, GCS silent in mode {start} (FS_GCS_ENABLE 1, FS_ACTION {fs_action}): 'GCS Failsafe' "
                        f"{fired[0] - quiet:.1f} s after the GCS went quiet (last heartbeat <= 1 s before), mode "
