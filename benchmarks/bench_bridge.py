@@ -9,7 +9,8 @@ Subcommands (each prints a table and finishes in under 2 minutes; `all` runs the
                value latency (the first override that shows the request); telemetry forwarding latency
   throughput   autopilot telemetry flood routed to a GCS: highest zero-loss rate, next to raw parse_buffer
   cpu          CPU % of one core at nominal load (50 Hz wheels / IMU / control, 30 Hz ODOMETRY), next to a
-               plain pymavlink router; --parts: also the bridge with its cores stubbed (where the CPU goes)
+               plain pymavlink router; --parts: also the bridge with its cores stubbed (where the CPU goes);
+               --without PART: also the bridge with that part of its filter costing nothing (as replay's)
   wakeup       CPU of a Python process that only wakes from select() (what a pass costs before any work)
   regularity   override period jitter at command.rate_hz = 50, quiet and under a 5000 msg/s GCS flood
   contention   the cpu table's nominal load while numpy keeps both cores busy, at normal priority and with the
@@ -297,6 +298,16 @@ finally:
     pr.dump_stats({path!r})
 sys.exit(code)
 """
+# `cpu --without PART`: this tree's bridge with one part of its filter costing nothing (_without), in the
+# running process: what trimming that part could save at most where the code runs cold.
+_WITHOUT_MAIN = """
+import sys
+sys.path.insert(0, {bench_dir!r})
+from bench_bridge import _without
+from rover_bridge.app.cli import main
+_without({part!r})
+sys.exit(main(sys.argv[1:]))
+"""
 
 
 # `cpu --parts`: this tree's bridge with parts of its cores replaced, to split its CPU. The shell, the
@@ -376,7 +387,7 @@ class Bridge:
 
     def __init__(self, profile_path: str, workdir: str, name: str = "bridge", root: Path = REPO,
                  stub: str | None = None, prefix: list[str] | None = None,
-                 env_extra: dict[str, str] | None = None) -> None:
+                 env_extra: dict[str, str] | None = None, without: str | None = None) -> None:
         self.name = name
         self.ap_port, self.gcs_port = free_udp_port(), free_udp_port()
         self.ap_addr, self.gcs_addr = (LOCAL, self.ap_port), (LOCAL, self.gcs_port)
@@ -389,6 +400,8 @@ class Bridge:
         python = [sys.executable, *(["-c", _CPROFILE_MAIN.format(path=prof)] if prof else ["-m", "rover_bridge"])]
         if stub is not None:  # `cpu --parts`: one of STUBS
             python = [sys.executable, "-c", _STUB_MAIN.format(stub=stub)]
+        if without is not None:  # `cpu --without`: one of WITHOUT
+            python = [sys.executable, "-c", _WITHOUT_MAIN.format(bench_dir=str(Path(__file__).parent), part=without)]
         # BENCH_PREFIX="chrt -f 10" (or "nice -n -10") runs every bridge under test that way: what a
         # real-time priority (e.g. systemd's CPUSchedulingPolicy=) buys on a busy machine.
         # `prefix` (contention: the unit's scheduling) replaces BENCH_PREFIX.
@@ -980,6 +993,7 @@ def bench_cpu(args: argparse.Namespace) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         profile = write_profile({"command.rate_hz": "50.0"}, tmp)
         parts = [Bridge(profile, tmp, name, stub=stub) for stub, name in STUBS.items()] if args.parts else []
+        parts += [Bridge(profile, tmp, f"bridge, {part} free", without=part) for part in args.without or ()]
         under_test = [*bridges(args, profile, tmp), *parts, PlainRouter(tmp)]
         socks = [(udp_socket(), udp_socket()) for _ in under_test]
         samples: list[list[tuple[float, float, float]]] = [[] for _ in under_test]
@@ -1544,9 +1558,9 @@ def bench_startup(args: argparse.Namespace) -> None:
                 if got is not None and msg_id(d[0]) == MSG_ODOMETRY:
                     odometry = time.monotonic()
             now = time.monotonic()
-            if bridge_addr is not None and now >= next_send:
+            if got is not None and bridge_addr is not None and now >= next_send:
                 t_s = now - got + 1.0
-                kinds = ("WHEEL_DISTANCE", "ATTITUDE")
+                kinds: tuple[str, ...] = ("WHEEL_DISTANCE", "ATTITUDE")
                 if now - last_heartbeat >= 1.0:
                     kinds, last_heartbeat = ("HEARTBEAT", *kinds), now
                 for kind in kinds:
@@ -1744,13 +1758,16 @@ def replay_frames(seconds: float) -> list[tuple[float, str, bool, bytes]]:
     return out
 
 
-WITHOUT = ("judge", "update", "predict")  # replay --without: the filter's parts that can be made free
+WITHOUT = ("judge", "update", "predict", "filterpy")  # replay/cpu --without: the filter's parts that can be made free
 
 
 def _without(part: str) -> None:
     """Make one part of the filter cost nothing in this process (replay --without): what trimming it could
     buy at most. judge: the first 50 wheel intervals are judged, every later one gets the 50th's verdict;
-    update / predict: filterpy's update / prediction (with the models it runs) are skipped."""
+    update / predict: filterpy's update / prediction (with the models it runs) are skipped; filterpy: only
+    filterpy's own predict and update are (the models still run, the state stays where it started)."""
+    from filterpy.kalman import KalmanFilter
+
     from rover_bridge.estimate import arc_ekf, wheel_judge
 
     if part == "judge":
@@ -1766,6 +1783,9 @@ def _without(part: str) -> None:
         arc_ekf.ArcKalmanFilter.update_rows = lambda self, *a, **k: None  # type: ignore[method-assign]
     elif part == "predict":
         arc_ekf.ArcKalmanFilter.predict_arc = lambda self, dt_s: None  # type: ignore[method-assign]
+    elif part == "filterpy":
+        KalmanFilter.predict = lambda self, *a, **k: None
+        KalmanFilter.update = lambda self, *a, **k: None
 
 
 def replay_main(seconds: float, repeats: int, without: str | None = None) -> dict[str, Any]:
@@ -1901,6 +1921,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="also run this tree's bridge with parts of its cores stubbed (routing; routing + "
                         "outputs; one flow only; the command flow with an estimator that costs nothing): "
                         "where its CPU goes")
+    p.add_argument("--without", action="append", choices=WITHOUT,
+                   help="also run this tree's bridge with that part of the filter costing nothing (repeatable; "
+                        "as replay --without, in the running process)")
     p = sub.add_parser("regularity")
     p.add_argument("--seconds", type=float, default=8.0)
     p.add_argument("--repeats", type=int, default=3)
