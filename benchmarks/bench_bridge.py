@@ -1762,12 +1762,10 @@ WITHOUT = ("judge", "update", "predict", "filterpy")  # replay/cpu --without: th
 
 
 def _without(part: str) -> None:
-    """Make one part of the filter cost nothing in this process (replay --without): what trimming it could
+    """Make one part of the filter cost nothing in this process (replay and cpu --without): what trimming it could
     buy at most. judge: the first 50 wheel intervals are judged, every later one gets the 50th's verdict;
     update / predict: filterpy's update / prediction (with the models it runs) are skipped; filterpy: only
     filterpy's own predict and update are (the models still run, the state stays where it started)."""
-    from filterpy.kalman import KalmanFilter
-
     from rover_bridge.estimate import arc_ekf, wheel_judge
 
     if part == "judge":
@@ -1784,6 +1782,8 @@ def _without(part: str) -> None:
     elif part == "predict":
         arc_ekf.ArcKalmanFilter.predict_arc = lambda self, dt_s: None  # type: ignore[method-assign]
     elif part == "filterpy":
+        from filterpy.kalman import KalmanFilter
+
         KalmanFilter.predict = lambda self, *a, **k: None
         KalmanFilter.update = lambda self, *a, **k: None
 
