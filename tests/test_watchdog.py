@@ -370,9 +370,10 @@ def test_the_process_tells_systemd_it_is_ready_and_pings_while_it_runs(tmp_path:
     sock, path = _notify_socket(tmp_path)
     env = dict(os.environ, NOTIFY_SOCKET=path, WATCHDOG_USEC="400000")
     # Read as the messages come (as systemd does): the socket queues only net.unix.max_dgram_qlen of them.
+    # 6 s: READY=1 waits for the filter's import, which took over 2.8 s with the suite's workers on both cores.
     proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "run", "--params",
                              str(REPO / "params" / "default.toml"), "--autopilot", "udpout:127.0.0.1:9", "--gcs",
-                             "none", "--duration", "3.0"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                             "none", "--duration", "6.0"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     got: list[str] = []
     ready_s = stopping_s = math.nan
     try:
