@@ -13,14 +13,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rover_bridge.app.fleet_analysis import LogReport, analyse_log, fleet_profile
-from rover_bridge.app.fleet_drift import GpsTrack
-from rover_bridge.app.fleet_inputs import expand
-from rover_bridge.app.fleet_output import read_table, write_table
-from rover_bridge.app.fleet_rovers import combine, rovers
 from rover_bridge.app.replay import replay
 from rover_bridge.errors import ConfigError
 from rover_bridge.estimate.core import CalibrationEstimate
+from rover_bridge.fleet.analysis import LogReport, analyse_log, fleet_profile
+from rover_bridge.fleet.drift import GpsTrack
+from rover_bridge.fleet.folder import read_table, write_table
+from rover_bridge.fleet.jobs import expand
+from rover_bridge.fleet.rovers import combine, rovers
 from rover_bridge.params import Profile
 from sitl import Scenario
 from sitl.scenario import SlipWindow, StallWindow
@@ -266,7 +266,7 @@ def test_tables_are_parquet_or_csv_where_no_parquet_library_is_installed(
 def test_a_byte_pattern_is_found_across_chunk_borders(data: bytes, pattern: bytes, chunk: int) -> None:
     import tempfile
 
-    from rover_bridge.app.fleet_sources import LogFrames
+    from rover_bridge.app.log_frames import LogFrames
 
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "x.tlog"

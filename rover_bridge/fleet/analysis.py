@@ -25,12 +25,12 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
-from rover_bridge.app.fleet_drift import GpsTrack
-from rover_bridge.app.fleet_sources import LogUnreadableError, log_kind
+from rover_bridge.app.log_frames import LogUnreadableError, log_kind
 from rover_bridge.app.replay import OdometryRow, ReplayResult, replay
 from rover_bridge.command.outputs import OutputMap
 from rover_bridge.command.wheel_control import WiringMonitor
 from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.fleet.drift import GpsTrack
 from rover_bridge.kinematics import WheelSpeeds
 from rover_bridge.params import Profile
 

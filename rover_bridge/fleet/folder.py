@@ -21,8 +21,8 @@ from dataclasses import astuple
 from pathlib import Path
 from typing import Any
 
-from rover_bridge.app.fleet_analysis import LogReport
-from rover_bridge.app.fleet_rovers import RoverReport
+from rover_bridge.fleet.analysis import LogReport
+from rover_bridge.fleet.rovers import RoverReport
 
 
 def _parquet() -> Any:
