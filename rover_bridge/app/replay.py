@@ -1,4 +1,4 @@
-"""Offline estimation over a recorded .tlog (or an ArduPilot DataFlash .bin, see fleet_sources): the same
+"""Offline estimation over a recorded .tlog (or an ArduPilot DataFlash .bin, see log_frames): the same
 core, fed the recorded frames at their recorded times, so a log from the rover can be re-run with other
 estimator parameters.
 

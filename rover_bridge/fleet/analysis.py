@@ -5,7 +5,7 @@ kept); `LogAnalysis` watches the replay and keeps only running sums:
 
 - duration (the replay's clock, which does not follow jumps of the log's clock) and distance (the replayed
   path); the calibration at the end of the log with its 1-sigma uncertainty (the filter's own);
-- the estimate against GPS where the log has a good fix (fleet_drift): GPS_RAW_INT with a 3-D fix, or,
+- the estimate against GPS where the log has a good fix (drift): GPS_RAW_INT with a 3-D fix, or,
   in a log without GPS_RAW_INT, GLOBAL_POSITION_INT (the emulator's truth, an autopilot's fused position);
 - slip events (the estimator's slip verdict starting), gaps and clock jumps (its counters, and the log's
   clock jumping);

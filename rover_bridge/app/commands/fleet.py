@@ -1,7 +1,7 @@
 """rover-bridge fleet LOGS... --params P: every log replayed on Dask, one report per log, per rover, per fleet.
 
-See rover_bridge.fleet.analysis (per log), fleet_rovers (per rover), fleet_output (the folder written)
-and fleet_dask (where it runs). Exit 0 when at least one log was used, 1 when none, 2 on bad usage (also
+A thin shell over rover_bridge.fleet: analysis (per log), rovers (per rover), folder (the folder written)
+and cluster (where it runs). Exit 0 when at least one log was used, 1 when none, 2 on bad usage (also
 when Dask is not installed: the message says what to install).
 """
 
