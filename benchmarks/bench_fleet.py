@@ -140,7 +140,7 @@ def write_fleet(folder: Path, duration_s: float = 90.0, rovers: tuple[EmulatedRo
 def accuracy_table(reports: list[Any], profile: Any) -> list[str]:
     """Truth against the fleet's per-rover calibration (the 2 % flag threshold)."""
     from rover_bridge.app.composition import BridgeCore
-    from rover_bridge.app.fleet_rovers import rovers
+    from rover_bridge.fleet.rovers import rovers
 
     prior = BridgeCore(profile).estimate.calibration_estimate()
     found = {r.rover: r for r in rovers(reports, profile, prior, "both", 0.02)}
@@ -161,10 +161,10 @@ def accuracy_table(reports: list[Any], profile: Any) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from rover_bridge.app.fleet_analysis import fleet_profile
-    from rover_bridge.app.fleet_dask import DaskMap
-    from rover_bridge.app.fleet_inputs import expand
     from rover_bridge.app.replay import replay
+    from rover_bridge.fleet.analysis import fleet_profile
+    from rover_bridge.fleet.cluster import DaskMap
+    from rover_bridge.fleet.jobs import expand
     from rover_bridge.params import load_profile
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

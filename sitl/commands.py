@@ -10,17 +10,13 @@ out before the board falls silent). Anything else: MAV_RESULT_UNSUPPORTED.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
+from sitl.autopilot_view import AutopilotView
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.modes import MODE_AUTO
 from sitl.motors import FUNC_THROTTLE_LEFT, FUNC_THROTTLE_RIGHT
 from sitl.rc import NUM_SERVOS
 from sitl.sensors import wire_int
 from sitl.streams import MAPPED
-
-if TYPE_CHECKING:
-    from sitl.autopilot import Autopilot
 
 _P = mavlink
 ACCEPTED: int = _P.MAV_RESULT_ACCEPTED
@@ -30,7 +26,8 @@ UNSUPPORTED: int = _P.MAV_RESULT_UNSUPPORTED
 FORCE_ARM_MAGIC = 21196  # ArduPilot's param2 to skip pre-arm checks
 
 
-def handle_command(ap: Autopilot, msg: MAVLinkMessage, command: int, params: tuple[float, ...], now_us: int) -> None:
+def handle_command(ap: AutopilotView, msg: MAVLinkMessage, command: int, params: tuple[float, ...],
+                   now_us: int) -> None:
     """Act on one command and queue its COMMAND_ACK (a reboot starts after the ACK is queued)."""
     ap.count("commands")
     p1, p2, p3 = params[0], params[1], params[2]
@@ -69,14 +66,14 @@ def handle_command(ap: Autopilot, msg: MAVLinkMessage, command: int, params: tup
         ap.start_reboot(now_us)  # after the ACK is queued, as ArduPilot sends it first
 
 
-def set_mode(ap: Autopilot, base_mode: int, custom_mode: int) -> bool:
+def set_mode(ap: AutopilotView, base_mode: int, custom_mode: int) -> bool:
     """SET_MODE / DO_SET_MODE: only custom modes (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) are taken."""
     if not base_mode & _P.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
         return False
     return ap.rover.set_mode(custom_mode)
 
 
-def arm(ap: Autopilot, force: bool) -> int:
+def arm(ap: AutopilotView, force: bool) -> int:
     if ap.armed:
         return ACCEPTED
     no_motors = not ap.rc.functions() & {FUNC_THROTTLE_LEFT, FUNC_THROTTLE_RIGHT}
@@ -88,7 +85,7 @@ def arm(ap: Autopilot, force: bool) -> int:
     return ACCEPTED
 
 
-def disarm(ap: Autopilot) -> int:
+def disarm(ap: AutopilotView) -> int:
     """AP_Arming_Rover::disarm: outside AUTO the mission starts from its first item next time."""
     if ap.armed:
         ap.armed = False
@@ -98,7 +95,7 @@ def disarm(ap: Autopilot) -> int:
     return ACCEPTED
 
 
-def do_set_servo(ap: Autopilot, n: int, pwm: int) -> int:
+def do_set_servo(ap: AutopilotView, n: int, pwm: int) -> int:
     if not 1 <= n <= NUM_SERVOS:
         return FAILED
     if not ap.rc.do_set_servo(n, pwm):
@@ -108,14 +105,14 @@ def do_set_servo(ap: Autopilot, n: int, pwm: int) -> int:
     return ACCEPTED
 
 
-def mapped(ap: Autopilot, msg_id: int) -> bool:
+def mapped(ap: AutopilotView, msg_id: int) -> bool:
     """Whether ArduPilot has an internal id for the message (4.7 has none for WHEEL_DISTANCE)."""
     if msg_id == _P.MAVLINK_MSG_ID_WHEEL_DISTANCE and ap.vehicle.deny_wheel_distance_interval:
         return False
     return msg_id in MAPPED
 
 
-def set_message_interval(ap: Autopilot, msg_id: int, interval_us: float, param3: float) -> int:
+def set_message_interval(ap: AutopilotView, msg_id: int, interval_us: float, param3: float) -> int:
     if param3 != 0:
         return DENIED
     if not mapped(ap, msg_id):
@@ -127,7 +124,7 @@ def set_message_interval(ap: Autopilot, msg_id: int, interval_us: float, param3:
     return result
 
 
-def request_message(ap: Autopilot, msg_id: int) -> int:
+def request_message(ap: AutopilotView, msg_id: int) -> int:
     if msg_id == _P.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
         ap.outbox.append(autopilot_version(ap))
         return ACCEPTED
@@ -137,7 +134,7 @@ def request_message(ap: Autopilot, msg_id: int) -> int:
     return ACCEPTED
 
 
-def autopilot_version(ap: Autopilot) -> MAVLinkMessage:
+def autopilot_version(ap: AutopilotView) -> MAVLinkMessage:
     caps = (
         _P.MAV_PROTOCOL_CAPABILITY_MAVLINK2
         | _P.MAV_PROTOCOL_CAPABILITY_COMMAND_INT

@@ -8,22 +8,18 @@ RC_CHANNELS_OVERRIDE.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from sitl import commands
+from sitl.autopilot_view import AutopilotView
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.mission_protocol import MISSION_IDS
 from sitl.rc import NUM_RC
 from sitl.streams import STREAM_GROUPS
 
-if TYPE_CHECKING:
-    from sitl.autopilot import Autopilot
-
 _P = mavlink
 UINT16_MAX = 65535
 
 
-def for_us(ap: Autopilot, msg: MAVLinkMessage) -> bool:
+def for_us(ap: AutopilotView, msg: MAVLinkMessage) -> bool:
     """ArduPilot's routing rule: broadcast (0) or our ids."""
     ts = getattr(msg, "target_system", None)
     tc = getattr(msg, "target_component", None)
@@ -34,7 +30,7 @@ def for_us(ap: Autopilot, msg: MAVLinkMessage) -> bool:
     return tc is None or tc in (0, ap.component_id)
 
 
-def handle_message(ap: Autopilot, msg: MAVLinkMessage, now_us: int) -> None:
+def handle_message(ap: AutopilotView, msg: MAVLinkMessage, now_us: int) -> None:
     """Process one decoded message (ignored while rebooting)."""
     if ap.rebooting:
         ap.count("rx_while_rebooting")
@@ -89,7 +85,7 @@ def handle_message(ap: Autopilot, msg: MAVLinkMessage, now_us: int) -> None:
         ap.outbox.append(ap.mav.timesync_encode(max(1, now_us * 1000), msg.ts1))
 
 
-def _handle_override(ap: Autopilot, msg: MAVLinkMessage, now_us: int) -> None:
+def _handle_override(ap: AutopilotView, msg: MAVLinkMessage, now_us: int) -> None:
     if msg.get_srcSystem() != int(ap.param("MAV_GCS_SYSID")):
         ap.count("override_rejected_sysid")  # silently, as ArduPilot does
         return
@@ -104,7 +100,7 @@ def _handle_override(ap: Autopilot, msg: MAVLinkMessage, now_us: int) -> None:
             ap._set_override(ch, 0 if value == UINT16_MAX - 1 else value, now_us)
 
 
-def _handle_param_read(ap: Autopilot, msg: MAVLinkMessage) -> None:
+def _handle_param_read(ap: AutopilotView, msg: MAVLinkMessage) -> None:
     names = list(ap.params)
     if msg.param_index >= 0:
         if msg.param_index < len(names):
@@ -117,7 +113,7 @@ def _handle_param_read(ap: Autopilot, msg: MAVLinkMessage) -> None:
         ap.count("param_read_unknown")
 
 
-def _handle_request_data_stream(ap: Autopilot, msg: MAVLinkMessage) -> None:
+def _handle_request_data_stream(ap: AutopilotView, msg: MAVLinkMessage) -> None:
     if msg.start_stop == 0:
         hz = 0
     elif msg.start_stop == 1:

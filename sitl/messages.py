@@ -9,17 +9,14 @@ axis 5, deg/s; 2: speed, axis 4, m/s: Rover's send_pid_tuning), HOME_POSITION on
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
+from sitl.autopilot_view import AutopilotView
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.mission import COMPLETE, RUNNING
 from sitl.modes import AUTOPILOT_MODES, MODE_AUTO, MODE_GUIDED, MODE_HOLD
 from sitl.physics import PhysicsState
 from sitl.rc import NUM_RC
 from sitl.sensors import G_M_S2, accel_reading_m_s2, fit_to_wire, fitted
-
-if TYPE_CHECKING:
-    from sitl.autopilot import Autopilot
 
 _P = mavlink
 PID_AXIS_SPEED = 4  # PID_TUNING_ACCZ, Rover's speed controller
@@ -29,7 +26,7 @@ _NO_MISSION, _NOT_STARTED, _ACTIVE, _COMPLETE = 1, 2, 3, 5
 
 
 @fitted  # every field saturates at its wire type's range, as the C conversions on the autopilot do
-def build(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMessage:
+def build(ap: AutopilotView, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMessage:
     """Build one message of a stream from the current state."""
     boot_ms = ap.time_boot_ms(now_us)
     boot_us = max(0, now_us - ap.boot_us)
@@ -112,13 +109,13 @@ def build(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> MAVLinkMe
     raise ValueError(f"cannot build message id {msg_id}")
 
 
-def build_all(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> list[MAVLinkMessage]:
+def build_all(ap: AutopilotView, msg_id: int, now_us: int, s: PhysicsState) -> list[MAVLinkMessage]:
     """The messages one due stream slot (or request) of ``msg_id`` produces (none, one or two), each
     fitted to its wire types as ``build``'s are."""
     return [fit_to_wire(msg) for msg in _build_all(ap, msg_id, now_us, s)]
 
 
-def _build_all(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> list[MAVLinkMessage]:
+def _build_all(ap: AutopilotView, msg_id: int, now_us: int, s: PhysicsState) -> list[MAVLinkMessage]:
     m = ap.mav
     rover = ap.rover
     if msg_id == _P.MAVLINK_MSG_ID_NAV_CONTROLLER_OUTPUT:
@@ -157,7 +154,7 @@ def _build_all(ap: Autopilot, msg_id: int, now_us: int, s: PhysicsState) -> list
 HOME_ALT_MM = 584_000  # the altitude GLOBAL_POSITION_INT reports
 
 
-def mission_current(ap: Autopilot, seq: int) -> MAVLinkMessage:
+def mission_current(ap: AutopilotView, seq: int) -> MAVLinkMessage:
     """MISSION_CURRENT (GCS_Common.cpp send_mission_current): ``seq``, items without home, state, AUTO or not."""
     mission = ap.mission
     state = (_NO_MISSION if not mission.present() else _ACTIVE if mission.state == RUNNING

@@ -168,7 +168,8 @@ def test_the_demo_judges_each_estimate_at_its_own_samples_not_between_them() -> 
     # A turn whose rate changes (10 rad/s^2), the truth's yaw at 50 Hz (the wheels' stamps), positions at 20 Hz.
     # Both estimates are exact at their own stamps, the wheels at 50 Hz and the EKF at the 33-48 ms ODOMETRY of a
     # real-time run. A straight line across the EKF's gaps put 0.15 deg on it that no message carried.
-    from rover_bridge.app.demo import Series, errors_over_time
+    from rover_bridge.app.demo import errors_over_time
+    from rover_bridge.app.demo_series import Series
 
     def yaw(t: float) -> float:
         return 5.0 * (t - 10.0) ** 2  # CW rad, from rest at 10 s

@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 
 from rover_bridge.app.cli import build_parser
-from rover_bridge.app.demo import SCENARIO_HELP, SCENARIOS, GotoLeg, Series, picture_name
+from rover_bridge.app.demo import SCENARIO_HELP, SCENARIOS, picture_name
 from rover_bridge.app.demo_picture import _spans, _zoom_window, plot
+from rover_bridge.app.demo_series import GotoLeg, Series
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -17,11 +17,11 @@ from typing import Any
 import pytest
 
 from rover_bridge.app.cli import main as cli_main
-from rover_bridge.app.fleet_analysis import fleet_profile
-from rover_bridge.app.fleet_dask import DaskMap
-from rover_bridge.app.fleet_inputs import expand
-from rover_bridge.app.fleet_output import read_table
 from rover_bridge.app.replay import replay
+from rover_bridge.fleet.analysis import fleet_profile
+from rover_bridge.fleet.cluster import DaskMap
+from rover_bridge.fleet.folder import read_table
+from rover_bridge.fleet.jobs import expand
 from rover_bridge.params import load_profile, profile_from_dict
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))

@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 
-from rover_bridge.app.fleet_analysis import LogReport, analyse_log, fleet_profile
 from rover_bridge.app.replay import replay
+from rover_bridge.fleet.analysis import LogReport, analyse_log, fleet_profile
 from rover_bridge.params import Profile
 from sitl import Emulator
 

@@ -13,14 +13,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rover_bridge.app.fleet_analysis import LogReport, analyse_log, fleet_profile
-from rover_bridge.app.fleet_drift import GpsTrack
-from rover_bridge.app.fleet_inputs import expand
-from rover_bridge.app.fleet_output import read_table, write_table
-from rover_bridge.app.fleet_rovers import combine, rovers
 from rover_bridge.app.replay import replay
 from rover_bridge.errors import ConfigError
 from rover_bridge.estimate.core import CalibrationEstimate
+from rover_bridge.fleet.analysis import LogReport, analyse_log, fleet_profile
+from rover_bridge.fleet.drift import GpsTrack
+from rover_bridge.fleet.folder import figure, no_drift_reason, read_table, write_table
+from rover_bridge.fleet.jobs import expand
+from rover_bridge.fleet.rovers import combine, rovers
 from rover_bridge.params import Profile
 from sitl import Scenario
 from sitl.scenario import SlipWindow, StallWindow
@@ -231,6 +231,33 @@ def test_rovers_are_grouped_flagged_and_patched() -> None:
     assert patched.robot.track_width_m == pytest.approx(0.312, abs=1e-4)
 
 
+
+def test_an_empty_drift_panel_says_why() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def log(name: str, fixes: int, drift_pct: float) -> LogReport:
+        return LogReport(f"/a/{name}.tlog", "a", 1, "tlog", "used", start_unix_s=1.79e9, distance_m=30.0,
+                         track_scale=1.0, track_scale_sigma=0.002, radius_ratio=1.0, radius_ratio_sigma=0.002,
+                         gps_fixes=fixes, drift_pct=drift_pct)
+
+    prior = CalibrationEstimate(1.0, 0.05, 1.0, 0.03, True)
+    panels = {}
+    for case, reports in (("gps", [log("x", 50, 0.2), log("y", 0, math.nan)]),
+                          ("no gps", [log("x", 0, math.nan), log("y", 0, math.nan)]),
+                          ("few fixes", [log("x", 6, math.nan), log("y", 0, math.nan)])):
+        fig = figure(plt, reports, rovers(reports, PROFILE, prior, "both", 0.02), lambda r: f"{r.folder}#1", 0.02)
+        panels[case] = (len(fig.axes[2].lines), [t.get_text() for t in fig.axes[2].texts])
+        plt.close(fig)
+    assert panels["gps"] == (1, [])
+    assert panels["no gps"][0] == 0 and panels["no gps"][1][0].startswith("no GPS fix in these 2 logs:")
+    assert "GLOBAL_POSITION_INT" in panels["no gps"][1][0]
+    assert panels["few fixes"][0] == 0 and panels["few fixes"][1][0].startswith("GPS fixes in 1 of 2 logs, too few")
+    assert no_drift_reason([]) == "no log used:\nno drift against GPS"
+
+
 # ---------------------------------------------------------------------------- inputs and tables
 
 def test_inputs_are_files_folders_and_globs_each_once(tmp_path: Path) -> None:
@@ -266,7 +293,7 @@ def test_tables_are_parquet_or_csv_where_no_parquet_library_is_installed(
 def test_a_byte_pattern_is_found_across_chunk_borders(data: bytes, pattern: bytes, chunk: int) -> None:
     import tempfile
 
-    from rover_bridge.app.fleet_sources import LogFrames
+    from rover_bridge.app.log_frames import LogFrames
 
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "x.tlog"

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from lockstep import Lockstep
 
 from rover_bridge.app.cli import main as cli_main
-from rover_bridge.app.fleet_sources import LogFrames
+from rover_bridge.app.log_frames import LogFrames
 from rover_bridge.app.replay import compare, replay
 from rover_bridge.mavlink.dialect import mavutil
 from rover_bridge.params import Profile

@@ -12,10 +12,9 @@ from __future__ import annotations
 import itertools
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:
-    from rover_bridge.app.demo import Series
+from rover_bridge.app.demo_series import Series
 
 Errors = list[tuple[float, float, float, float, float]]  # t, wheel and EKF position errors, their heading errors
 

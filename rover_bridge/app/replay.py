@@ -1,4 +1,4 @@
-"""Offline estimation over a recorded .tlog (or an ArduPilot DataFlash .bin, see fleet_sources): the same
+"""Offline estimation over a recorded .tlog (or an ArduPilot DataFlash .bin, see log_frames): the same
 core, fed the recorded frames at their recorded times, so a log from the rover can be re-run with other
 estimator parameters.
 
@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 from rover_bridge.app import deadlines
 from rover_bridge.app.composition import BridgeCore
-from rover_bridge.app.fleet_sources import LogFrames, LogStats
+from rover_bridge.app.log_frames import LogFrames, LogStats
 from rover_bridge.estimate.core import CalibrationEstimate, EstimateCore
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.wire import Incoming, Link
@@ -137,7 +137,7 @@ def _span_s(rows: tuple[OdometryRow, ...]) -> float:
 
 
 class ReplayObserver(Protocol):
-    """Sees the replay as it goes (rover_bridge.app.fleet_analysis): every frame not from the bridge itself,
+    """Sees the replay as it goes (rover_bridge.fleet.analysis): every frame not from the bridge itself,
     after the estimator has read it, and every replayed row, each at the replay's clock (s)."""
 
     def frame(self, t_s: float, msg: Any, estimate: EstimateCore) -> None: ...

@@ -1,7 +1,7 @@
 """rover-bridge fleet LOGS... --params P: every log replayed on Dask, one report per log, per rover, per fleet.
 
-See rover_bridge.app.fleet_analysis (per log), fleet_rovers (per rover), fleet_output (the folder written)
-and fleet_dask (where it runs). Exit 0 when at least one log was used, 1 when none, 2 on bad usage (also
+A thin shell over rover_bridge.fleet: analysis (per log), rovers (per rover), folder (the folder written)
+and cluster (where it runs). Exit 0 when at least one log was used, 1 when none, 2 on bad usage (also
 when Dask is not installed: the message says what to install).
 """
 
@@ -38,16 +38,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from rover_bridge.app.fleet_dask import require_dask
     from rover_bridge.errors import ConfigError
+    from rover_bridge.fleet.cluster import require_dask
 
     require_dask()
     from rover_bridge.app.composition import BridgeCore
-    from rover_bridge.app.fleet_analysis import LogReport, fleet_profile
-    from rover_bridge.app.fleet_dask import DaskMap
-    from rover_bridge.app.fleet_inputs import expand
-    from rover_bridge.app.fleet_output import patch_name, picture, summary, write_table
-    from rover_bridge.app.fleet_rovers import RoverReport, rover_key, rovers
+    from rover_bridge.fleet.analysis import LogReport, fleet_profile
+    from rover_bridge.fleet.cluster import DaskMap
+    from rover_bridge.fleet.folder import patch_name, picture, summary, write_table
+    from rover_bridge.fleet.jobs import expand
+    from rover_bridge.fleet.rovers import RoverReport, rover_key, rovers
     from rover_bridge.params import load_profile
 
     problems = []

@@ -19,8 +19,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 from rover_bridge.app.calibration import radii_for_ratio, robot_patch_lines
-from rover_bridge.app.fleet_analysis import LogReport
 from rover_bridge.estimate.core import CalibrationEstimate
+from rover_bridge.fleet.analysis import LogReport
 from rover_bridge.params import Profile
 
 ROVER_BY = ("both", "sysid", "folder")

@@ -1,6 +1,6 @@
 """Which logs a fleet run reads: files, folders (searched recursively) and glob patterns, each log once.
 
-Each log also gets its folder, the default half of a rover's name (fleet_rovers.rover_key): for a log
+Each log also gets its folder, the default half of a rover's name (rovers.rover_key): for a log
 found under a folder given on the command line, the first folder below it (logs/rover-03/2026-11/a.tlog
 given as `logs` -> "rover-03"), or that folder's own name for a log directly in it; for a file or a glob
 match, the name of the folder it is in.

@@ -1,4 +1,4 @@
-"""The logs a fleet keeps, as MAVLink frames on the log's own clock: `.tlog` and ArduPilot DataFlash `.bin`.
+"""The logs replay and the fleet read, as MAVLink frames on the log's own clock: `.tlog` and ArduPilot DataFlash `.bin`.
 
 - A `.tlog` (the bridge's `run --tlog`, MAVProxy, Mission Planner, QGroundControl) is read frame by frame
   with pymavlink; each frame's `_timestamp` is the recorder's wall clock (s).

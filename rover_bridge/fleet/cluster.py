@@ -17,10 +17,10 @@ from collections.abc import Sequence
 from types import TracebackType
 from typing import Any
 
-from rover_bridge.app.fleet_analysis import LogReport, analyse_log
-from rover_bridge.app.fleet_inputs import LogJob
-from rover_bridge.app.fleet_sources import log_kind
+from rover_bridge.app.log_frames import log_kind
 from rover_bridge.errors import ConfigError
+from rover_bridge.fleet.analysis import LogReport, analyse_log
+from rover_bridge.fleet.jobs import LogJob
 from rover_bridge.params import Profile
 
 INSTALL = "pip install 'rover-bridge[fleet]'"

@@ -21,8 +21,9 @@ from dataclasses import astuple
 from pathlib import Path
 from typing import Any
 
-from rover_bridge.app.fleet_analysis import LogReport
-from rover_bridge.app.fleet_rovers import RoverReport
+from rover_bridge.fleet.analysis import LogReport
+from rover_bridge.fleet.drift import MIN_EXTENT_M, MIN_PAIRS
+from rover_bridge.fleet.rovers import RoverReport
 
 
 def _parquet() -> Any:
@@ -109,6 +110,15 @@ def picture(logs: Sequence[LogReport], rovers: Sequence[RoverReport], rover_key:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
+    fig = figure(plt, logs, rovers, rover_key, threshold)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def figure(plt: Any, logs: Sequence[LogReport], rovers: Sequence[RoverReport], rover_key: Any,
+           threshold: float) -> Any:
+    """The picture's matplotlib figure (`plt`: matplotlib.pyplot, imported by the caller)."""
     fig, axes = plt.subplots(1, 3, figsize=(16, 5))
     used = [r for r in logs if r.used]
     for i, rover in enumerate(rovers):
@@ -137,10 +147,23 @@ def picture(logs: Sequence[LogReport], rovers: Sequence[RoverReport], rover_key:
     axes[2].set_title("drift against GPS")
     axes[2].set_xlabel("distance driven in the log [m]")
     axes[2].set_ylabel("largest error after the best fit [% of distance]")
+    if not axes[2].lines:  # no log has a drift figure: the panel says why instead of standing blank
+        axes[2].text(0.5, 0.5, no_drift_reason(used), transform=axes[2].transAxes, ha="center", va="center",
+                     fontsize=10, color="0.3")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return fig
+
+
+def no_drift_reason(used: Sequence[LogReport]) -> str:
+    """Why no used log has a drift figure (see rover_bridge.fleet.drift)."""
+    if not used:
+        return "no log used:\nno drift against GPS"
+    with_fixes = sum(1 for r in used if r.gps_fixes > 0)
+    if with_fixes == 0:
+        return (f"no GPS fix in {'this log' if len(used) == 1 else f'these {len(used)} logs'}:\ndrift needs "
+                "GPS_RAW_INT with a 3-D fix,\nor GLOBAL_POSITION_INT")
+    return (f"GPS fixes in {with_fixes} of {len(used)} logs, too few to fit:\ndrift needs {MIN_PAIRS} fixes "
+            f"or more\nover a track of {MIN_EXTENT_M:g} m or more")
 
 
 def _epoch(used: Sequence[LogReport]) -> float:

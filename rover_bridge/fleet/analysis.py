@@ -5,7 +5,7 @@ kept); `LogAnalysis` watches the replay and keeps only running sums:
 
 - duration (the replay's clock, which does not follow jumps of the log's clock) and distance (the replayed
   path); the calibration at the end of the log with its 1-sigma uncertainty (the filter's own);
-- the estimate against GPS where the log has a good fix (fleet_drift): GPS_RAW_INT with a 3-D fix, or,
+- the estimate against GPS where the log has a good fix (drift): GPS_RAW_INT with a 3-D fix, or,
   in a log without GPS_RAW_INT, GLOBAL_POSITION_INT (the emulator's truth, an autopilot's fused position);
 - slip events (the estimator's slip verdict starting), gaps and clock jumps (its counters, and the log's
   clock jumping);
@@ -25,12 +25,12 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
-from rover_bridge.app.fleet_drift import GpsTrack
-from rover_bridge.app.fleet_sources import LogUnreadableError, log_kind
+from rover_bridge.app.log_frames import LogUnreadableError, log_kind
 from rover_bridge.app.replay import OdometryRow, ReplayResult, replay
 from rover_bridge.command.outputs import OutputMap
 from rover_bridge.command.wheel_control import WiringMonitor
 from rover_bridge.estimate.core import EstimateCore
+from rover_bridge.fleet.drift import GpsTrack
 from rover_bridge.kinematics import WheelSpeeds
 from rover_bridge.params import Profile
 
