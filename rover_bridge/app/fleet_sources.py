@@ -10,7 +10,9 @@
 
 Both are streamed (a DataFlash log is mapped, not read into memory; DFReader keeps an index of offsets).
 What the reading found is kept in `LogFrames.stats`: frames, unreadable frames, the bytes of an incomplete
-last frame (a log cut mid-frame) and the log's start as UNIX time where the log says it.
+last frame (a log cut mid-frame) and the log's start as UNIX time where the log says it. What pymavlink prints
+about a damaged DataFlash log is captured and counted there too (rover_bridge.app.chatter), in whichever
+process reads it.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rover_bridge.app.chatter import Chatter
 from rover_bridge.errors import ConfigError, RemoteError
 from rover_bridge.mavlink.dialect import mavlink, mavutil
 
@@ -42,6 +45,7 @@ class LogStats:
     bad_bytes: int = 0  # bytes in no readable frame (between them; an incomplete last one not counted)
     trailing_bytes: int = 0  # an incomplete last frame: the log ends mid-frame
     start_unix_s: float | None = None
+    reader_lines: int = 0  # lines pymavlink printed about what it skipped (captured, not shown)
 
 
 def log_kind(path: Path) -> str:
@@ -121,21 +125,25 @@ class DataFlashFrames:
     def frames(self) -> Iterator[Any]:
         from pymavlink import DFReader
 
+        chatter = Chatter()  # a line per bad byte otherwise, on this process's terminal (chatter's docstring)
         try:
-            log: Any = DFReader.DFReader_binary(str(self.path))
+            with chatter.everything():
+                log: Any = DFReader.DFReader_binary(str(self.path))
         except Exception as exc:  # DFReader raises whatever its parsing met on a damaged file
             raise LogUnreadableError(f"not a DataFlash log ({type(exc).__name__}: {exc})") from exc
         try:
             self._account(log)
             self._gyro_type = "IMU" if "IMU" in log.name_to_id else "GYR"
             while True:
-                m = log.recv_match(type=set(DATAFLASH_TYPES))
+                with chatter.python:
+                    m = log.recv_match(type=set(DATAFLASH_TYPES))
                 if m is None:
                     return
                 for out in self._convert(m, log):
                     self.stats.frames += 1
                     yield out
         finally:
+            self.stats.reader_lines = chatter.lines
             log.filehandle.close()
 
     def _account(self, log: Any) -> None:
