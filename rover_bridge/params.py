@@ -732,12 +732,20 @@ def load_profile(path: str | Path) -> Profile:
     ConfigError lists every problem with its key path."""
     given = path
     path = find_profile(path)
+    if path.is_dir():
+        raise ConfigError([f"{given}: a folder, not a profile"])
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         hint = (f" (packaged profiles: {', '.join(packaged_profiles())}; `rover-bridge init {given}` writes one "
                 "to start from)") if isinstance(exc, FileNotFoundError) else ""
         raise ConfigError([f"{given}: cannot read profile: {exc.strerror or exc}{hint}"]) from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError([f"{path}: not a TOML profile: not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
+                           f"offset {exc.start})"]) from exc
+    if not text:
+        raise ConfigError([f"{path}: the profile is empty (`rover-bridge init {given} --force` writes one to start "
+                           "from)"])
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

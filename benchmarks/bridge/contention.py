@@ -31,7 +31,6 @@ from bridge.harness import (
     write_profile,
 )
 from bridge.process import Bridge
-
 from rover_bridge.mavlink.dialect import mavlink
 
 # ------------------------------------------------------------------------------------- 4b. contention

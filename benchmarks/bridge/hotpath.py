@@ -26,7 +26,6 @@ from bridge.harness import (
     print_table,
     udp_socket,
 )
-
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import load_profile
 

@@ -38,7 +38,6 @@ from bridge.harness import (
     udp_socket,
 )
 from bridge.process import Heartbeats, bridges, stop_all
-
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import load_profile
 

@@ -26,7 +26,6 @@ from bridge.harness import (
     udp_socket,
 )
 from bridge.process import Bridge
-
 from rover_bridge.params import load_profile
 
 # ------------------------------------------------------------------------------------- 5. memory

@@ -35,7 +35,6 @@ from bridge.harness import (
     self_cmd,
     udp_socket,
 )
-
 from rover_bridge.mavlink.dialect import mavlink
 
 BENCHMARKS = Path(__file__).resolve().parents[1]  # on sys.path of a bridge under test that imports free_parts

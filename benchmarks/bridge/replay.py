@@ -17,7 +17,6 @@ from typing import Any
 from bridge.free_parts import make_free
 from bridge.harness import REPO, msg_id, print_table, replay_frames, self_cmd, write_profile
 from bridge.process import bridge_env
-
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import load_profile
 

@@ -16,7 +16,6 @@ from typing import Any
 
 from bridge.harness import DEFAULT_PROFILE, FLOOD_MIX, drain, flood_frames, forwarded_frames, print_table, udp_socket
 from bridge.process import Bridge, PlainRouter, bridges, stop_all
-
 from rover_bridge.mavlink.dialect import mavlink
 
 # ------------------------------------------------------------------------------------- 2. throughput

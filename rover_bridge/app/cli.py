@@ -1,7 +1,8 @@
 """`rover-bridge` command line: one subcommand per module in rover_bridge.app.commands.
 
 Each command module exposes `NAME`, `HELP`, `add_arguments(parser)` and `main(args) -> int`.
-Exit codes: 0 ok, 1 runtime failure (a link that does not open too), 2 bad configuration or usage.
+Exit codes: 0 ok, 1 runtime failure (a link that does not open, a file that cannot be written however checked),
+2 bad configuration or usage (a path given that cannot be read or written: rover_bridge.app.paths).
 """
 
 from __future__ import annotations
@@ -61,6 +62,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except LinkError as exc:  # not the configuration's fault: exit 1, so systemd tries again
         print(f"rover-bridge: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        # A file that failed after its check (rover_bridge.app.paths): a full disk, a folder removed meanwhile.
+        # Still one line, naming the file (or the command: a write that fails at close names none).
+        where = f": {exc.filename}" if exc.filename else f" {args.command}"
+        print(f"rover-bridge{where}: {exc.strerror or exc}", file=sys.stderr)
         return 1
     return code
 

@@ -124,9 +124,10 @@ class ReplayResult:
         if self.log.trailing_bytes:
             notes.append(f"WARNING: the log ends mid-frame ({self.log.trailing_bytes} bytes of an incomplete last "
                          "frame, ignored): it was cut short")
-        if self.log.bad_frames or self.log.bad_bytes:
+        if self.log.bad_frames or self.log.bad_bytes or self.log.reader_lines:
+            hidden = f"; pymavlink's {self.log.reader_lines} lines about it not shown" if self.log.reader_lines else ""
             notes.append(f"WARNING: unreadable data in the log ({self.log.bad_frames} bad frames, "
-                         f"{self.log.bad_bytes} bad bytes), skipped")
+                         f"{self.log.bad_bytes} bad bytes), skipped{hidden}")
         return notes
 
 

@@ -65,10 +65,14 @@ def key_from_bytes(data: bytes, origin: str = "key") -> bytes:
             return bytes.fromhex(text.decode("ascii"))
         except (UnicodeDecodeError, ValueError):
             pass
-    if not text or b"\n" in text or b"\0" in text:
+    try:
+        passphrase = text.decode("utf-8", "strict")
+    except UnicodeDecodeError:
+        passphrase = ""  # binary, and not 32 bytes: no kind of key
+    if not passphrase or "\n" in passphrase or "\0" in passphrase:
         raise ConfigError([f"security.key_file {origin!r}: expected 32 raw bytes, 64 hex characters or a "
                            "one-line passphrase"])
-    return passphrase_key(text.decode("utf-8", "strict"))
+    return passphrase_key(passphrase)
 
 
 def passphrase_key(passphrase: str) -> bytes:

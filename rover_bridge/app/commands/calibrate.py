@@ -21,6 +21,7 @@ from rover_bridge.app.calibration import Calibration, CalibrationResult
 from rover_bridge.app.commands import add_params_argument
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.loop import RUN_BATCH, Runner
+from rover_bridge.app.paths import output_problem
 from rover_bridge.command.core import CommandState
 from rover_bridge.errors import ConfigError
 from rover_bridge.kinematics import MeasuredWheels
@@ -58,6 +59,8 @@ def main(args: argparse.Namespace) -> int:
     profile = load_profile(args.params)
     gcs_urls = [u for u in (args.gcs or []) if u.lower() != "none"]
     problems = [p for p in (check_url(u) for u in [args.autopilot, *gcs_urls]) if p]
+    if out_problem := output_problem(args.out, "--out"):  # found now, not after a minute of driving
+        problems.append(out_problem)
     if problems:
         raise ConfigError(problems)
     cal = Calibration(profile, quick=args.quick)

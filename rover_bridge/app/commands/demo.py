@@ -26,9 +26,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from rover_bridge.app.demo import picture_name, run_demo
+    from rover_bridge.app.paths import output_problem
+    from rover_bridge.errors import ConfigError
 
     plot = picture_name(args.scenario) if args.plot is None else args.plot
     plot_path = None if plot.lower() == "none" else Path(plot)
+    if plot_path is not None and (problem := output_problem(plot_path, "--plot")):
+        raise ConfigError([problem])  # now, not after the drive
     try:
         summary = run_demo(args.scenario, 0.45 if args.quick else 1.0, args.seed, plot_path)
     except KeyboardInterrupt:

@@ -43,6 +43,7 @@ def main(args: argparse.Namespace) -> int:
 
     require_dask()
     from rover_bridge.app.composition import BridgeCore
+    from rover_bridge.app.paths import output_folder_problem
     from rover_bridge.fleet.analysis import LogReport, fleet_profile
     from rover_bridge.fleet.cluster import DaskMap
     from rover_bridge.fleet.folder import patch_name, picture, summary, write_table
@@ -55,6 +56,8 @@ def main(args: argparse.Namespace) -> int:
         problems.append("--workers must be at least 1")
     if not 0.0 < args.threshold_pct < 100.0:
         problems.append("--threshold-pct must be between 0 and 100")
+    if out_problem := output_folder_problem(args.out, "--out"):  # now, not after every log was replayed
+        problems.append(out_problem)
     if problems:
         raise ConfigError(problems)
     given = load_profile(args.params)

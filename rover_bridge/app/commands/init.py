@@ -12,6 +12,7 @@ import textwrap
 from pathlib import Path
 
 from rover_bridge import __version__
+from rover_bridge.app.paths import output_problem
 from rover_bridge.errors import ConfigError
 from rover_bridge.params import ParamInfo, iter_params, toml_value
 
@@ -95,6 +96,8 @@ def profile_template(path: str) -> str:
 
 def main(args: argparse.Namespace) -> int:
     path = Path(args.path)
+    if problem := output_problem(path, make_folders=True):
+        raise ConfigError([problem])
     if path.exists() and not args.force:
         raise ConfigError([f"{path} exists: choose another PATH, or --force to overwrite it"])
     try:

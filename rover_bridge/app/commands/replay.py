@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 
 from rover_bridge.app.commands import add_params_argument
+from rover_bridge.app.paths import input_problem, output_problem
+from rover_bridge.errors import ConfigError
 
 NAME = "replay"
 HELP = ("run the estimator over a recorded .tlog or DataFlash .bin; write pose, velocity, covariance and the "
@@ -27,14 +29,21 @@ def main(args: argparse.Namespace) -> int:
     from rover_bridge.params import load_profile
 
     profile = load_profile(args.params)
-    result = replay(args.log, profile)
     csv_path = Path(args.csv) if args.csv else Path(args.log).with_suffix(".csv")
+    plot = args.plot if args.plot and args.plot.lower() != "none" else None
+    outputs = [("--csv" if args.csv else "CSV", csv_path), *([("--plot", Path(plot))] if plot else [])]
+    problems = [p for p in [log_problem(args.log), *(output_problem(path, label) for label, path in outputs)] if p]
+    problems += [f"{label} {path}: that is the log itself: give another path" for label, path in outputs
+                 if path.resolve() == Path(args.log).resolve()]
+    if problems:
+        raise ConfigError(problems)
+    result = replay(args.log, profile)
     write_csv(result.rows, csv_path)
     print(result.summary())
     if result.log.trailing_bytes:
         print(f"rover-bridge replay: {args.log} ends mid-frame: it was cut short", file=sys.stderr)
     print(f"csv: {csv_path} ({len(result.rows)} rows)")
-    if args.plot and args.plot.lower() != "none":
+    if plot:
         try:
             import matplotlib
 
@@ -52,6 +61,19 @@ def main(args: argparse.Namespace) -> int:
         ax.set_xlabel("right [m]")
         ax.set_ylabel("forward [m]")
         ax.legend()
-        fig.savefig(args.plot, dpi=90)
-        print(f"picture: {args.plot}")
+        fig.savefig(plot, dpi=90)
+        print(f"picture: {plot}")
     return 0 if result.rows else 1
+
+
+def log_problem(path: str) -> str | None:
+    """What stops `path` from being replayed at all: not there, a folder (`fleet` reads folders), unreadable,
+    empty, or plainly no log of its kind."""
+    from rover_bridge.app.log_frames import format_problem
+
+    if Path(path).is_dir():
+        return f"{path}: a folder, not a log (replay reads one log; `rover-bridge fleet {path}` reads every log in it)"
+    problem = input_problem(path, what="log")
+    if problem is None and Path(path).is_file() and (wrong := format_problem(Path(path))):
+        problem = f"{path}: {wrong}"
+    return problem

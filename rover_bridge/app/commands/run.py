@@ -22,6 +22,7 @@ from rover_bridge.app.commands import add_params_argument
 from rover_bridge.app.composition import BridgeCore
 from rover_bridge.app.guard import StopGuard
 from rover_bridge.app.loop import Runner, TlogWriter
+from rover_bridge.app.paths import output_problem
 from rover_bridge.app.systemd import SystemdNotifier
 from rover_bridge.command.core import EMERGENCY_PROBE_TS1, CommandState
 from rover_bridge.errors import ConfigError
@@ -85,6 +86,9 @@ def main(args: argparse.Namespace) -> int:
     problems = [p for p in (check_url(u) for u in [args.autopilot, *gcs_urls]) if p]
     if args.duration is not None and not args.duration > 0:
         problems.append(f"--duration: expected a positive number of seconds, got {args.duration}")
+    # The files it will write, now: not a traceback at start (--tlog) or after the whole run (--stats-json).
+    problems += [p for p in (output_problem(path, option) for option, path in
+                             (("--tlog", args.tlog), ("--stats-json", args.stats_json)) if path) if p]
     if problems:
         raise ConfigError(problems)
     for warning in profile_warnings(profile):
