@@ -1,5 +1,8 @@
 """``rover-sitl`` / ``python -m sitl``: run the emulator on a wall clock.
 
+By default it listens where ArduPilot's SITL does, TCP 5760 on 127.0.0.1 (one client at a time, a new one
+replacing the old), which is where ``rover-bridge run`` connects by default: the two meet with no options.
+
 Exit codes: 0 after SIGINT/SIGTERM or ``--duration``; 2 for a bad option, a bad file, a bad
 connection string or a busy port (with a one-line message on stderr).
 """
@@ -8,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import signal
 import sys
 import threading
@@ -17,6 +21,7 @@ from types import FrameType
 from sitl.config import ConfigError, VehicleConfig, load_vehicle
 from sitl.emulator import Emulator
 from sitl.endpoint import ConnectionStringError
+from sitl.modes import MODE_NAMES
 from sitl.scenario import Scenario, load_scenario
 
 
@@ -30,9 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--connect",
         "--endpoint",
         dest="connect",
-        default="udpin:127.0.0.1:14551",
+        default="tcpin:127.0.0.1:5760",
         help="pymavlink-style connection string: udpin:/udp:/udpout:/tcpin:/tcp:HOST:PORT "
-        "(default %(default)s)",
+        "(default %(default)s, ArduPilot SITL's port, where `rover-bridge run` connects by default)",
     )
     p.add_argument("--sysid", type=int, default=1, help="MAVLink system id (default 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed for noise and faults (default 0)")
@@ -92,7 +97,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     host, port = emu.local_address
     print(
-        f"rover-sitl: {args.connect} bound to {host}:{port}, sysid {args.sysid}, seed {args.seed}",
+        f"rover-sitl: {args.connect} bound to {host}:{port}, sysid {args.sysid}, seed {args.seed}, "
+        f"{'armed' if emu.armed else 'disarmed'}, {MODE_NAMES.get(emu.mode, emu.mode)}",
         file=sys.stderr,
         flush=True,
     )
@@ -102,7 +108,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         emu.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    print("rover-sitl: stopped", file=sys.stderr, flush=True)
+    truth = emu.truth  # where the rover ended, for whoever drove it by hand
+    print(
+        f"rover-sitl: stopped after {emu.sim_time_s:.1f} s: at x {truth.x_m:.2f} m north, y {truth.y_m:.2f} m east, "
+        f"yaw {math.degrees(truth.yaw_rad):.0f} deg",
+        file=sys.stderr,
+        flush=True,
+    )
     return 0
 
 

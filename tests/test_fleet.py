@@ -157,7 +157,7 @@ def test_without_dask_fleet_says_what_to_install(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setitem(sys.modules, "distributed", None)  # as if dask[distributed] were not installed
     assert cli_main(["fleet", str(fleet_dir), "--params", PARAMS]) == 2
     err = capsys.readouterr().err
-    assert "pip install 'rover-bridge[fleet]'" in err and "Dask" in err
+    assert "pip install -e '.[fleet]' in the clone" in err and "Dask" in err
 
 
 def test_no_usable_log_is_a_failure(scheduler: str, tmp_path: Path) -> None:

@@ -382,3 +382,34 @@ def test_tcp_endpoint_answers_heartbeat() -> None:
     finally:
         client.close()
         emu.close()
+
+
+def test_tcp_endpoint_serves_a_client_that_reconnects() -> None:
+    """`rover-sitl` listens on TCP like ArduPilot SITL: a bridge that is restarted connects again and is
+    served (the new client replaces the old, as on a serial port), its commands answered."""
+    emu = Emulator()
+    emu.open("tcpin:127.0.0.1:0")
+    port = emu.local_address[1]
+    first = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=255)
+    second = None
+    try:
+        for _ in range(120):
+            emu.step(0.01)
+        assert first.recv_match(type="HEARTBEAT", blocking=True, timeout=1.0) is not None
+        first.close()
+        second = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=255)
+        second.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        got: list[MAVLinkMessage] = []
+        for _ in range(150):
+            emu.step(0.01)
+            while (m := second.recv_match(blocking=False)) is not None:
+                got.append(m)
+        assert [m.get_type() for m in got].count("HEARTBEAT") >= 1
+        acks = [m for m in got if m.get_type() == "COMMAND_ACK"]
+        assert [(a.command, a.result) for a in acks] == [(mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
+                                                          mavlink.MAV_RESULT_ACCEPTED)]
+        assert emu.armed
+    finally:
+        if second is not None:
+            second.close()
+        emu.close()

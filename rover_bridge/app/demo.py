@@ -114,6 +114,7 @@ class Summary:
     ekf_heading_max_deg: float
     latency_p50_ms: float
     latency_p99_ms: float
+    latency_samples: int
     rejected: int
     odometry_rate_hz: float
 
@@ -122,15 +123,28 @@ class Summary:
                 ("final position error", f"{self.wheel_final_m:.3f} m", f"{self.ekf_final_m:.3f} m"),
                 ("max position error", f"{self.wheel_max_m:.3f} m", f"{self.ekf_max_m:.3f} m"),
                 ("max heading error", f"{self.wheel_heading_max_deg:.2f} deg", f"{self.ekf_heading_max_deg:.2f} deg"),
-                ("request->override latency p50/p99", f"{self.latency_p50_ms:.2f} / {self.latency_p99_ms:.2f} ms", ""),
+                (*latency_row(self.latency_p50_ms, self.latency_p99_ms, self.latency_samples), ""),
                 ("ODOMETRY rate at the GCS", f"{self.odometry_rate_hz:.1f} Hz", ""),
                 ("requests rejected by the bridge", str(self.rejected), "")]
-        out = [f"{'':36s} {'wheel odometry':>18s} {'EKF (published)':>18s}"]
-        out += [f"{a:36s} {b:>18s} {c:>18s}" for a, b, c in rows]
+        width = max(len(a) for a, _, _ in rows)
+        out = [f"{'':{width}s} {'wheel odometry':>18s} {'EKF (published)':>18s}"]
+        out += [f"{a:{width}s} {b:>18s} {c:>18s}" for a, b, c in rows]
         return "\n".join(out)
 
     def as_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in self.__dict__.items()}
+
+
+def latency_row(p50_ms: float, p99_ms: float, samples: int) -> tuple[str, str]:
+    """A latency row's name and value, saying how many samples it rests on: the goto scenario sends one
+    request, and the p99 of fewer than 100 samples is only their largest (percentile() is nearest-rank)."""
+    name = "request->override latency"
+    if samples == 0:
+        return name, "no requests"
+    if samples == 1:
+        return f"{name}, 1 sample", f"{p50_ms:.2f} ms"
+    upper = "p99" if samples >= 100 else "max"
+    return f"{name} p50/{upper}, {samples} samples", f"{p50_ms:.2f} / {p99_ms:.2f} ms"
 
 
 def free_udp_port() -> int:
@@ -547,6 +561,7 @@ class Demo:
             wheel_heading_max_deg=max((e[3] for e in errs), default=nan),
             ekf_heading_max_deg=max((e[4] for e in errs), default=nan),
             latency_p50_ms=percentile(latencies, 50), latency_p99_ms=percentile(latencies, 99),
+            latency_samples=len(latencies),
             rejected=rejected, odometry_rate_hz=rate)
 
 
@@ -569,7 +584,7 @@ def run_demo(scenario: str, scale: float, seed: int, plot_path: Path | None,
             plot(demo.series, errs, plot_path, f"rover-bridge demo ({scenario})")
             out(f"\npicture: {plot_path}")
         except ImportError:
-            out("\npicture skipped: matplotlib is not installed (pip install 'rover-bridge[plot]')")
+            out("\npicture skipped: matplotlib is not installed (pip install matplotlib)")
     if os.environ.get("ROVER_BRIDGE_DEMO_JSON"):
         Path(os.environ["ROVER_BRIDGE_DEMO_JSON"]).write_text(json.dumps(summary.as_dict()))
     return summary

@@ -23,7 +23,8 @@ from rover_bridge.fleet.analysis import LogReport, analyse_log
 from rover_bridge.fleet.jobs import LogJob
 from rover_bridge.params import Profile
 
-INSTALL = "pip install 'rover-bridge[fleet]'"
+# From a clone (the package is not on the index), the editable form; from elsewhere, the path to the clone.
+INSTALL = "pip install -e '.[fleet]' in the clone (or pip install '/path/to/rover-bridge[fleet]')"
 
 
 def require_dask() -> None:

@@ -50,7 +50,7 @@ def main(args: argparse.Namespace) -> int:
             matplotlib.use("Agg")
             import matplotlib.pyplot as plt
         except ImportError:
-            print("plot skipped: matplotlib is not installed (pip install 'rover-bridge[plot]')")
+            print("plot skipped: matplotlib is not installed (pip install matplotlib)")
             return 0
         fig, ax = plt.subplots(figsize=(6, 6))
         # FRD: x forward (up on the page), y right.

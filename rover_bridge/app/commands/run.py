@@ -25,6 +25,7 @@ from rover_bridge.app.loop import Runner, TlogWriter
 from rover_bridge.app.paths import output_problem
 from rover_bridge.app.systemd import SystemdNotifier
 from rover_bridge.command.core import EMERGENCY_PROBE_TS1, CommandState
+from rover_bridge.command.modes import mode_name
 from rover_bridge.errors import ConfigError
 from rover_bridge.mavlink.links import Endpoint, check_url
 from rover_bridge.mavlink.signing import SignatureVerifier, load_key, signing_timestamp
@@ -55,6 +56,22 @@ def silent_autopilot_hint(url: str) -> str:
         return "the connection is up but nothing speaks MAVLink on it: is this the autopilot's MAVLink port?"
     return ("check the wiring (TX to RX), the baud rate after the comma, and that the autopilot's port speaks "
             "MAVLink 2 (SERIALn_PROTOCOL = 2, SERIALn_BAUD to match)")
+
+
+def found_line(core: BridgeCore, url: str, again: bool) -> str:
+    """The autopilot's heartbeat has been seen: which one, where, in which mode."""
+    vehicle = core.command.vehicle
+    return (f"autopilot {'back' if again else 'found'}: system {core.identity.vehicle_system_id}, component "
+            f"{core.identity.autopilot_component_id} on {url}, {mode_name(vehicle.custom_mode)}, "
+            f"{'armed' if vehicle.armed else 'disarmed'}")
+
+
+def stop_line(why: str, confirmed: bool | None, output_mode: str) -> str:
+    """Why the bridge stopped and what became of the outputs (runner.stop_safely's answer)."""
+    what = "neutral and release sent" if output_mode == "rc_override" else "trim on both outputs sent"
+    how = {True: f"{what}, confirmed by the autopilot", False: f"{what}, NOT confirmed by the autopilot",
+           None: "nothing sent (no vehicle was known)"}[confirmed]
+    return f"stopped ({why}): {how}"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -91,6 +108,9 @@ def main(args: argparse.Namespace) -> int:
                              (("--tlog", args.tlog), ("--stats-json", args.stats_json)) if path) if p]
     if problems:
         raise ConfigError(problems)
+    # Its own few lines (started, autopilot found, stopped) are what a person watching it needs: shown without -v.
+    if not log.isEnabledFor(logging.INFO):
+        log.setLevel(logging.INFO)
     for warning in profile_warnings(profile):
         log.warning("profile: %s", warning)
     core = BridgeCore(profile)
@@ -127,6 +147,7 @@ def main(args: argparse.Namespace) -> int:
 
     started: list[bool] = []
     told_silent: list[bool] = []
+    alive = [False, False]  # the autopilot's heartbeat is fresh; it has been before
 
     def on_pass(now_s: float) -> None:
         if not started:
@@ -140,6 +161,11 @@ def main(args: argparse.Namespace) -> int:
         guard.passed(now_s)
         guard.frames = runner.emergency_frames
         notifier.ping(now_s)
+        if core.command.autopilot_alive is not alive[0]:
+            alive[0] = not alive[0]
+            if alive[0]:
+                log.info("%s", found_line(core, args.autopilot, again=alive[1]))
+                alive[1] = True
         if not told_silent and core.command.state is CommandState.WAITING and now_s - start >= NO_AUTOPILOT_S:
             told_silent.append(True)
             log.warning("no HEARTBEAT from the autopilot on %s after %.0f s: %s", args.autopilot, NO_AUTOPILOT_S,
@@ -174,12 +200,14 @@ def main(args: argparse.Namespace) -> int:
                 os.close(fd)
     if args.stats_json:
         write_stats(args.stats_json, runner, verifier)
-    if stop_requested:
-        how = {True: "confirmed by the autopilot", False: "NOT confirmed by the autopilot",
-               None: "no vehicle was known"}[confirmed]
-        what = "neutral and release" if profile.output.mode == "rc_override" else "trim on both outputs"
-        log.log(logging.INFO if confirmed is not False else logging.WARNING, "stopped by signal %d: %s sent, %s",
-                stop_requested[0], what, how)
+    if code:
+        why = "an unexpected error, above"
+    elif stop_requested:
+        why = signal.Signals(stop_requested[0]).name
+    else:
+        why = f"--duration {args.duration:g} s over"
+    log.log(logging.INFO if confirmed is not False else logging.WARNING, "%s",
+            stop_line(why, confirmed, profile.output.mode))
     return code
 
 
