@@ -505,6 +505,54 @@ def test_heartbeats_of_other_systems_do_not_keep_the_link() -> None:
     assert state(rig) is CommandState.LINK_LOST
 
 
+def vehicle_heartbeat(src: tuple[int, int], mode: int = 15, armed: bool = True) -> MAVLinkMessage:
+    base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+    msg = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                            base, mode, mavlink.MAV_STATE_ACTIVE, 3)
+    return Rig.wire(mavlink.MAVLink(None, srcSystem=src[0], srcComponent=src[1]), msg)
+
+
+def test_another_component_of_the_vehicle_is_not_its_autopilot() -> None:
+    rig = ready()
+    assert overrides(rig.local(0.01, vx=0.5).out) == [(1739, 1739)]
+    # A forged (or corrupted) vehicle heartbeat from another component: disarmed, HOLD. Not the autopilot's word.
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57), mode=4, armed=False), 0.02)
+    assert state(rig) is CommandState.ACTIVE and rig.core.vehicle.armed
+    for t in (1.0, 2.0, 2.9):  # nor does it keep the link alive
+        rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57)), t)
+    rig.core.tick(3.0)
+    assert state(rig) is CommandState.LINK_LOST and rig.identity.autopilot_component_id == 1
+
+
+def test_a_forged_first_heartbeat_lasts_only_until_it_falls_silent() -> None:
+    rig = Rig()
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((57, 3)), 0.0)  # the first vehicle heartbeat: learnt
+    assert rig.identity.vehicle_system_id == 57
+    for t in (0.5, 1.5, 2.5):
+        rig.heartbeat(t)  # the real autopilot (1:1), shut out while the other one counts as alive
+    assert rig.identity.vehicle_system_id == 57 and rig.core.vehicle.last_heartbeat_s == 0.0
+    rig.core.tick(3.0)
+    assert state(rig) is CommandState.LINK_LOST
+    rig.heartbeat(3.5)  # the other one is lost: the next vehicle heartbeat takes its place
+    assert (rig.identity.vehicle_system_id, rig.identity.autopilot_component_id) == (1, 1)
+    assert state(rig) is CommandState.IDLE
+    assert overrides(rig.local(3.6, vx=0.5).out) == [(1739, 1739)]  # addressed to 1:1 (overrides checks)
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((57, 3)), 3.7)  # while the autopilot is alive: nobody
+    assert rig.identity.vehicle_system_id == 1 and state(rig) is CommandState.ACTIVE
+
+
+def test_with_a_configured_system_id_only_its_components_take_a_lost_autopilots_place() -> None:
+    rig = Rig(profile(mavlink={"vehicle_system_id": 1}))
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57)), 0.0)  # the system's first vehicle heartbeat: 1:57
+    rig.heartbeat(0.5)
+    assert rig.identity.autopilot_component_id == 57 and rig.core.vehicle.last_heartbeat_s == 0.0
+    rig.core.tick(3.0)
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((2, 1)), 3.2)  # another system: never the configured vehicle
+    rig.heartbeat(3.5)
+    assert (rig.identity.vehicle_system_id, rig.identity.autopilot_component_id) == (1, 1)
+    assert state(rig) is CommandState.IDLE
+
+
 # ------------------------------------------------------------------ servo mode
 
 

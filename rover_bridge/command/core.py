@@ -257,9 +257,10 @@ class CommandCore:
     # ----------------------------------------------------------------- from the autopilot
 
     def _on_heartbeat(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
-        if not self.identity.is_autopilot_heartbeat(msg):
-            return NOTHING
         vehicle = self.vehicle
+        # While the autopilot's heartbeat is lost another vehicle heartbeat may take its place (Identity).
+        if not self.identity.is_autopilot_heartbeat(msg, relearn=vehicle.link_lost(now_s)):
+            return NOTHING
         if vehicle.last_heartbeat_s is None or vehicle.link_lost(now_s):
             self.gates.gcs_failsafe.autopilot_back(now_s)  # first seen, or back (rebooted?): read its FS_GCS_*
         vehicle.on_heartbeat(msg, now_s)
