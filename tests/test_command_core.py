@@ -747,6 +747,21 @@ def test_a_refused_or_never_reported_hold_request_lets_the_heartbeat_govern_agai
     assert _set_mode(rig, 3.0, 15).out == () and state(rig) is CommandState.IDLE  # not a stop mode
 
 
+def test_only_the_autopilots_own_ack_can_refuse_a_hold() -> None:
+    rig = ready()
+    _set_mode(rig, 0.1, mavlink.ROVER_MODE_HOLD)
+    refused = mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_RESULT_FAILED, 0, 0,
+                                                 255, 190)
+    for src in ((1, 57), (2, 1)):  # another component of the vehicle, another system: forged or not, not its word
+        rig.feed(Link.AUTOPILOT, Rig.wire(mavlink.MAVLink(None, srcSystem=src[0], srcComponent=src[1]), refused),
+                 0.15)
+    rig.heartbeat(0.2, mode=15)  # perhaps sent before the autopilot read the request
+    assert state(rig) is CommandState.HOLD
+    rig.feed(Link.AUTOPILOT, Rig.wire(rig.ap, refused), 0.3)  # the autopilot's own
+    rig.heartbeat(0.4, mode=15)
+    assert state(rig) is CommandState.IDLE
+
+
 def test_stop_modes_are_a_parameter() -> None:
     rig = ready(profile(modes={"stop": (), "gcs": (0, 1, 3, 4, 15)}))
     rig.heartbeat(0.02, mode=mavlink.ROVER_MODE_HOLD)

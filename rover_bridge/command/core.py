@@ -275,6 +275,9 @@ class CommandCore:
         return Reaction(consumed=False, out=tuple(self.wheels.advance(now_s, force_output=False)))
 
     def _on_command_ack(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
+        if (msg.get_srcSystem() != self.identity.vehicle_system_id
+                or msg.get_srcComponent() != self.identity.autopilot_component_id):
+            return NOTHING  # another component's answer (or a forged one) says nothing of the autopilot's mode
         if int(msg.command) == mavlink.MAV_CMD_DO_SET_MODE:
             ours = self.targets.mode_change_ack(msg, now_s)
             if ours is not None:
