@@ -11,8 +11,8 @@ parameter names, the autopilot's failsafe words) and random values. Several fixe
 
 During the fuzz every second must carry at least 80 % of command.rate_hz overrides, every PWM within
 [pwm_min, pwm_max] (or 0: released). Afterwards the link must heal: the ground station falls quiet, the
-autopilot speaks again (its heartbeat, its streams), and a fresh request must drive within HEAL_S: no state
-a fuzzed frame left may outlive the autopilot's next word about it.
+autopilot speaks again (its heartbeat, its streams), and a fresh request must drive within HEAL_S, and at
+the speed asked a second later: no state a fuzzed frame left may outlive the autopilot's next word about it.
 """
 
 from __future__ import annotations
@@ -334,9 +334,15 @@ def test_fuzz_on_both_links_keeps_the_overrides_coming_and_the_link_heals(seed: 
             rig.turn(now, requests=True)
             time.sleep(0.005)
         first = next((o[0] for o in ap.overrides if o[0] >= fresh_s and driving(o)), None)
+        while first is not None and (now := time.monotonic()) < first + 1.0:  # and it goes on to drive at speed
+            rig.turn(now, requests=True)
+            time.sleep(0.005)
         log = rig.output()
         assert first is not None, (ap.overrides[-5:], log[-3000:])
         assert first - fresh_s <= HEAL_S, (first - fresh_s, log[-3000:])
-        print(f"seed {seed}: {sent} frames in {FUZZ_S:g} s; fresh request driving after {first - fresh_s:.3f} s")
+        speed_m_s = min(ap.speed_m_s)
+        assert speed_m_s >= 0.25, (speed_m_s, ap.overrides[-5:], log[-3000:])  # 0.3 asked: no crawl, no stop
+        print(f"seed {seed}: {sent} frames in {FUZZ_S:g} s; fresh request driving after {first - fresh_s:.3f} s, "
+              f"{speed_m_s:.2f} m/s 1 s later")
     finally:
         rig.close()
