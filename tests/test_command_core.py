@@ -514,14 +514,19 @@ def vehicle_heartbeat(src: tuple[int, int], mode: int = 15, armed: bool = True) 
 
 def test_another_component_of_the_vehicle_is_not_its_autopilot() -> None:
     rig = ready()
-    assert overrides(rig.local(0.01, vx=0.5).out) == [(1739, 1739)]
+    rig.heartbeat(0.5)
+    assert overrides(rig.local(0.51, vx=0.5).out) == [(1739, 1739)]
     # A forged (or corrupted) vehicle heartbeat from another component: disarmed, HOLD. Not the autopilot's word.
-    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57), mode=4, armed=False), 0.02)
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57), mode=4, armed=False), 0.52)
     assert state(rig) is CommandState.ACTIVE and rig.core.vehicle.armed
-    for t in (1.0, 2.0, 2.9):  # nor does it keep the link alive
+    for t in (1.5, 2.5, 3.4):  # nor does it keep the link alive
         rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57)), t)
-    rig.core.tick(3.0)
+    rig.core.tick(3.5)
+    assert state(rig) is CommandState.LINK_LOST
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57)), 3.6)  # nor, heard twice, does it lose its place
     assert state(rig) is CommandState.LINK_LOST and rig.identity.autopilot_component_id == 1
+    rig.heartbeat(3.7)
+    assert state(rig) is CommandState.IDLE
 
 
 def test_a_forged_first_heartbeat_lasts_only_until_it_falls_silent() -> None:
@@ -539,6 +544,17 @@ def test_a_forged_first_heartbeat_lasts_only_until_it_falls_silent() -> None:
     assert overrides(rig.local(3.6, vx=0.5).out) == [(1739, 1739)]  # addressed to 1:1 (overrides checks)
     rig.feed(Link.AUTOPILOT, vehicle_heartbeat((57, 3)), 3.7)  # while the autopilot is alive: nobody
     assert rig.identity.vehicle_system_id == 1 and state(rig) is CommandState.ACTIVE
+
+
+def test_a_forged_first_heartbeat_read_by_both_cores_is_still_one_frame() -> None:
+    core = BridgeCore(profile())
+    core.handle(Incoming(Link.AUTOPILOT, vehicle_heartbeat((57, 3))), 0.0)  # the command and estimate cores
+    for t in (0.5, 1.5, 2.5):
+        core.handle(Incoming(Link.AUTOPILOT, vehicle_heartbeat((1, 1))), t)
+    core.tick(3.0)
+    assert core.command.state is CommandState.LINK_LOST and core.identity.vehicle_system_id == 57
+    core.handle(Incoming(Link.AUTOPILOT, vehicle_heartbeat((1, 1))), 3.5)
+    assert core.identity.vehicle_system_id == 1 and core.command.state is CommandState.IDLE
 
 
 def test_with_a_configured_system_id_only_its_components_take_a_lost_autopilots_place() -> None:

@@ -90,7 +90,7 @@ class AutopilotClock:
                 self._last_stamp_s = {stream: stamp_s}
                 shift = 0.0
             elif self._goes_on_from_before(stamp_s, now_s, stream):
-                event, shift = RESTORED, self._restore(stream, stamp_s)
+                event, shift = RESTORED, self._restore(stream, stamp_s, last)
             elif abs(stamp_s - shift - boot_now) > JUMP_S:
                 jump = stamp_s - shift - boot_now  # this stream is on another epoch (or garbage)
                 event, shift = JUMP, shift + jump
@@ -110,10 +110,16 @@ class AutopilotClock:
     def _keep_before(self, stream: str, last: float | None) -> None:
         """A reboot: keep the mapping it replaces (the stamps as they were before this one)."""
         assert self.offset_s is not None
+        self._before = (self.offset_s, dict(self._shift_s), self._lasts_before(stream, last))
+
+    def _lasts_before(self, stream: str, last: float | None) -> dict[str, float]:
+        """The last stamps as they were before this one of `stream` (observe has already noted it)."""
         lasts = dict(self._last_stamp_s)
-        if last is not None:
+        if last is None:
+            lasts.pop(stream, None)
+        else:
             lasts[stream] = last
-        self._before = (self.offset_s, dict(self._shift_s), lasts)
+        return lasts
 
     def _goes_on_from_before(self, stamp_s: float, now_s: float, stream: str) -> bool:
         """The stamp is far from the clock's now but where the mapping before the last reboot says now is."""
@@ -126,13 +132,13 @@ class AutopilotClock:
         old_offset, old_shift, _ = before
         return abs(stamp_s - old_shift.get(stream, 0.0) - (now_s - old_offset)) <= JUMP_S
 
-    def _restore(self, stream: str, stamp_s: float) -> float:
+    def _restore(self, stream: str, stamp_s: float, last: float | None) -> float:
         """Back to the mapping before the last reboot (the replaced one kept in its place); this stream's shift."""
         assert self._before is not None and self.offset_s is not None
         offset, shifts, lasts = self._before
         lasts = dict(lasts)
         lasts[stream] = stamp_s
-        self._before = (self.offset_s, self._shift_s, self._last_stamp_s)
+        self._before = (self.offset_s, self._shift_s, self._lasts_before(stream, last))
         self.offset_s, self._shift_s, self._last_stamp_s = offset, dict(shifts), lasts
         self._window = None
         return self._shift_s.get(stream, 0.0)
