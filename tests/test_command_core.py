@@ -505,6 +505,70 @@ def test_heartbeats_of_other_systems_do_not_keep_the_link() -> None:
     assert state(rig) is CommandState.LINK_LOST
 
 
+def vehicle_heartbeat(src: tuple[int, int], mode: int = 15, armed: bool = True) -> MAVLinkMessage:
+    base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+    msg = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                            base, mode, mavlink.MAV_STATE_ACTIVE, 3)
+    return Rig.wire(mavlink.MAVLink(None, srcSystem=src[0], srcComponent=src[1]), msg)
+
+
+def test_another_component_of_the_vehicle_is_not_its_autopilot() -> None:
+    rig = ready()
+    rig.heartbeat(0.5)
+    assert overrides(rig.local(0.51, vx=0.5).out) == [(1739, 1739)]
+    # A forged (or corrupted) vehicle heartbeat from another component: disarmed, HOLD. Not the autopilot's word.
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57), mode=4, armed=False), 0.52)
+    assert state(rig) is CommandState.ACTIVE and rig.core.vehicle.armed
+    for t in (1.5, 2.5, 3.4):  # nor does it keep the link alive
+        rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57)), t)
+    rig.core.tick(3.5)
+    assert state(rig) is CommandState.LINK_LOST
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57)), 3.6)  # nor, heard twice, does it lose its place
+    assert state(rig) is CommandState.LINK_LOST and rig.identity.autopilot_component_id == 1
+    rig.heartbeat(3.7)
+    assert state(rig) is CommandState.IDLE
+
+
+def test_a_forged_first_heartbeat_lasts_only_until_it_falls_silent() -> None:
+    rig = Rig()
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((57, 3)), 0.0)  # the first vehicle heartbeat: learnt
+    assert rig.identity.vehicle_system_id == 57
+    for t in (0.5, 1.5, 2.5):
+        rig.heartbeat(t)  # the real autopilot (1:1), shut out while the other one counts as alive
+    assert rig.identity.vehicle_system_id == 57 and rig.core.vehicle.last_heartbeat_s == 0.0
+    rig.core.tick(3.0)
+    assert state(rig) is CommandState.LINK_LOST
+    rig.heartbeat(3.5)  # the other one is lost: the next vehicle heartbeat takes its place
+    assert (rig.identity.vehicle_system_id, rig.identity.autopilot_component_id) == (1, 1)
+    assert state(rig) is CommandState.IDLE
+    assert overrides(rig.local(3.6, vx=0.5).out) == [(1739, 1739)]  # addressed to 1:1 (overrides checks)
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((57, 3)), 3.7)  # while the autopilot is alive: nobody
+    assert rig.identity.vehicle_system_id == 1 and state(rig) is CommandState.ACTIVE
+
+
+def test_a_forged_first_heartbeat_read_by_both_cores_is_still_one_frame() -> None:
+    core = BridgeCore(profile())
+    core.handle(Incoming(Link.AUTOPILOT, vehicle_heartbeat((57, 3))), 0.0)  # the command and estimate cores
+    for t in (0.5, 1.5, 2.5):
+        core.handle(Incoming(Link.AUTOPILOT, vehicle_heartbeat((1, 1))), t)
+    core.tick(3.0)
+    assert core.command.state is CommandState.LINK_LOST and core.identity.vehicle_system_id == 57
+    core.handle(Incoming(Link.AUTOPILOT, vehicle_heartbeat((1, 1))), 3.5)
+    assert core.identity.vehicle_system_id == 1 and core.command.state is CommandState.IDLE
+
+
+def test_with_a_configured_system_id_only_its_components_take_a_lost_autopilots_place() -> None:
+    rig = Rig(profile(mavlink={"vehicle_system_id": 1}))
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((1, 57)), 0.0)  # the system's first vehicle heartbeat: 1:57
+    rig.heartbeat(0.5)
+    assert rig.identity.autopilot_component_id == 57 and rig.core.vehicle.last_heartbeat_s == 0.0
+    rig.core.tick(3.0)
+    rig.feed(Link.AUTOPILOT, vehicle_heartbeat((2, 1)), 3.2)  # another system: never the configured vehicle
+    rig.heartbeat(3.5)
+    assert (rig.identity.vehicle_system_id, rig.identity.autopilot_component_id) == (1, 1)
+    assert state(rig) is CommandState.IDLE
+
+
 # ------------------------------------------------------------------ servo mode
 
 
@@ -697,6 +761,21 @@ def test_a_refused_or_never_reported_hold_request_lets_the_heartbeat_govern_agai
     rig.heartbeat(2.6, mode=15)  # 1.6 s later and still not reported: the autopilot's word wins
     assert state(rig) is CommandState.IDLE
     assert _set_mode(rig, 3.0, 15).out == () and state(rig) is CommandState.IDLE  # not a stop mode
+
+
+def test_only_the_autopilots_own_ack_can_refuse_a_hold() -> None:
+    rig = ready()
+    _set_mode(rig, 0.1, mavlink.ROVER_MODE_HOLD)
+    refused = mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_RESULT_FAILED, 0, 0,
+                                                 255, 190)
+    for src in ((1, 57), (2, 1)):  # another component of the vehicle, another system: forged or not, not its word
+        rig.feed(Link.AUTOPILOT, Rig.wire(mavlink.MAVLink(None, srcSystem=src[0], srcComponent=src[1]), refused),
+                 0.15)
+    rig.heartbeat(0.2, mode=15)  # perhaps sent before the autopilot read the request
+    assert state(rig) is CommandState.HOLD
+    rig.feed(Link.AUTOPILOT, Rig.wire(rig.ap, refused), 0.3)  # the autopilot's own
+    rig.heartbeat(0.4, mode=15)
+    assert state(rig) is CommandState.IDLE
 
 
 def test_stop_modes_are_a_parameter() -> None:

@@ -11,7 +11,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rover_bridge.estimate.clock import CLOCK_DRIFT, JUMP, LATENCY_WINDOW_S, REBOOT, AutopilotClock, Stamp
+from rover_bridge.estimate.clock import (
+    CLOCK_DRIFT,
+    JUMP,
+    LATENCY_WINDOW_S,
+    REBOOT,
+    RESTORED,
+    AutopilotClock,
+    Stamp,
+)
 from rover_bridge.estimate.diagnostics import (
     SLIP_MIN_INTERVALS,
     SLIP_REPORT_INTERVAL_S,
@@ -90,6 +98,26 @@ def test_clock_restarted_by_stamps_jumping_back() -> None:
     assert clock.observe(0.2, 151.0, "wheels") == Stamp(0.2, REBOOT)  # a reboot
     assert clock.offset_s == pytest.approx(150.8)
     assert clock.observe(0.25, 151.05, "gyro").event is None  # the other streams restarted with it
+
+
+def test_clock_a_reboot_that_one_stamp_faked_lasts_until_the_next_stamp() -> None:
+    clock = AutopilotClock()
+    for i in range(50):  # boot clock at 200 s, 10 ms late
+        for stream in ("wheels", "gyro"):
+            clock.observe(200.0 + 0.02 * i, 300.01 + 0.02 * i, stream)
+    assert clock.offset_s == pytest.approx(100.01)
+    assert clock.observe(100.0, 301.0, "wheels").event == REBOOT  # one stamp 100 s back (corrupted, forged)
+    assert clock.observe(200.995, 301.005, "gyro") == Stamp(pytest.approx(200.995), RESTORED)  # goes on: undone
+    assert clock.offset_s == pytest.approx(100.01)
+    assert clock.observe(201.0, 301.01, "wheels").event is None  # every stream is back where it was
+    assert clock.autopilot_time_s(301.1) == pytest.approx(201.09)
+    # A real reboot: the stamps go on from it; the clock from before it stays unused ...
+    assert clock.observe(0.5, 302.0, "wheels").event == REBOOT
+    assert clock.observe(0.52, 302.02, "gyro").event is None and clock.offset_s == pytest.approx(301.5)
+    # ... unless one stamp goes on from there: then the next real one restarts it again.
+    assert clock.observe(202.0, 302.03, "gyro").event == RESTORED
+    assert clock.observe(0.55, 302.05, "gyro").event == REBOOT and clock.offset_s == pytest.approx(301.5)
+    assert clock.observe(0.57, 302.07, "wheels").event is None
 
 
 def test_clock_re_bases_one_stream_on_another_epoch_and_back() -> None:

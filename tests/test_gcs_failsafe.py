@@ -72,15 +72,62 @@ def test_the_reader_asks_for_what_is_missing_a_few_times_then_stops() -> None:
     first = r.requests(1.0, 1, 1)
     assert [m.param_id for m in first] == ["FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_OPTIONS"]
     assert all(m.param_index == -1 and (m.target_system, m.target_component) == (1, 1) for m in first)
-    assert r.on_param_value(param_value("FS_GCS_ENABLE", 1.0)) and r.params == FailsafeParams(1, 5.0, 0)
-    assert not r.on_param_value(param_value("FS_GCS_TIMEOUT", math.nan)) and not r.on_param_value(param_value("X", 1))
+    assert r.on_param_value(param_value("FS_GCS_ENABLE", 1.0), 1.1) and r.params == FailsafeParams(1, 5.0, 0)
+    assert not r.on_param_value(param_value("FS_GCS_TIMEOUT", math.nan), 1.1)
+    assert not r.on_param_value(param_value("X", 1), 1.1)
     assert not r.due(2.9) and r.due(3.0)
     assert [m.param_id for m in r.requests(3.0, 1, 1)] == ["FS_GCS_TIMEOUT", "FS_OPTIONS"]
     for k in range(PARAM_ATTEMPTS):
         r.requests(5.0 + 2 * k, 1, 1)
     assert not r.due(1000.0)  # PX4 has no such parameters: asked PARAM_ATTEMPTS times, then left alone
-    r.on_param_value(param_value("FS_GCS_TIMEOUT", 12.5))
+    r.on_param_value(param_value("FS_GCS_TIMEOUT", 12.5), 1000.0)
     assert r.params == FailsafeParams(1, 12.5, 0)
+
+
+def test_a_value_that_changes_or_comes_unasked_is_asked_again_and_the_autopilots_answer_replaces_it() -> None:
+    r = ParamReader()
+    r.restart(0.0)
+    r.requests(0.0, 1, 1)
+    for name, value in (("FS_GCS_ENABLE", 1.0), ("FS_GCS_TIMEOUT", 5.0), ("FS_OPTIONS", 0.0)):
+        r.on_param_value(param_value(name, value), 0.05)  # the answers: taken, nothing more to ask
+    assert r.params == FailsafeParams(1, 5.0, 0) and r.requests(2.0, 1, 1) == [] and not r.due(1000.0)
+    r.on_param_value(param_value("FS_GCS_TIMEOUT", 0.0), 10.0)  # one frame (a corrupted one?) changes it
+    assert r.params == FailsafeParams(1, 0.0, 0)  # taken at once (a GCS's PARAM_SET must act) ...
+    assert r.due(10.0) and [m.param_id for m in r.requests(10.0, 1, 1)] == ["FS_GCS_TIMEOUT"]  # ... and asked
+    r.on_param_value(param_value("FS_GCS_TIMEOUT", 7.0), 10.01)  # another change before the answer
+    assert not r.due(10.09) and r.due(10.1)  # asked again, no sooner than PARAM_CONFIRM_S after the last request
+    assert [m.param_id for m in r.requests(10.1, 1, 1)] == ["FS_GCS_TIMEOUT"]
+    r.on_param_value(param_value("FS_GCS_TIMEOUT", 5.0), 10.12)  # the autopilot's answer: a change, asked again
+    assert [m.param_id for m in r.requests(10.22, 1, 1)] == ["FS_GCS_TIMEOUT"]
+    r.on_param_value(param_value("FS_GCS_TIMEOUT", 5.0), 10.24)  # said twice: confirmed
+    assert r.params == FailsafeParams(1, 5.0, 0) and r.requests(12.22, 1, 1) == [] and not r.due(1000.0)
+
+
+def test_a_value_the_autopilot_does_not_confirm_is_dropped() -> None:
+    r = ParamReader()
+    r.restart(0.0)
+    for k in range(PARAM_ATTEMPTS + 1):
+        r.requests(2.0 * k, 1, 1)  # an autopilot with no such parameters (PX4): no answer, asking stops
+    assert r.params is None and not r.due(1000.0)
+    r.on_param_value(param_value("FS_GCS_ENABLE", 1.0), 100.0)  # unasked: a forged or corrupted frame
+    assert r.params == FailsafeParams(1, 5.0, 0) and r.due(100.0)
+    for k in range(PARAM_ATTEMPTS):
+        assert [m.param_id for m in r.requests(100.0 + 2.0 * k, 1, 1)] == ["FS_GCS_ENABLE", "FS_GCS_TIMEOUT",
+                                                                          "FS_OPTIONS"]
+    assert r.requests(106.0, 1, 1) == [] and r.params is None and not r.due(1000.0)  # not said again: dropped
+
+
+def test_a_silence_that_the_parameters_no_longer_call_for_ends() -> None:
+    s = GcsSilence()
+    s.seen(10.0, FailsafeParams(1, 0.0))  # a forged FS_GCS_TIMEOUT 0: silent at once
+    assert s.silent(10.0, MANUAL, FailsafeParams(1, 0.0))
+    assert not s.silent(10.2, MANUAL, ON) and s.phase is Phase.WATCHING  # the real 5 s: not due yet
+    assert s.silent(15.0, MANUAL, ON)  # when due, silent as ever
+    s.seen(20.0, ON)
+    assert s.silent(25.0, MANUAL, ON) and not s.silent(25.1, MANUAL, FailsafeParams(0))  # FS_GCS_ENABLE 0
+    assert s.due_s == math.inf and not s.silent(100.0, MANUAL, FailsafeParams(0))
+    s.rearm(FailsafeParams(1, 5.0))  # on again (the watch rearms on every value read)
+    assert s.silent(100.0, MANUAL, FailsafeParams(1, 5.0))  # the GCS still unheard since 20 s: due again
 
 
 # -- a property: silent only when ArduPilot would fail safe -------------------------------------------------------
@@ -219,6 +266,31 @@ def test_fs_gcs_enable_2_keeps_driving_in_auto_and_rtl_always() -> None:
         rig.run_until(20.0, 0.5)
         assert rig.core.state is not CommandState.GCS_SILENT
         assert "gcs_failsafe.silent" not in rig.core.counters
+
+
+def test_a_corrupted_fs_gcs_timeout_pauses_only_until_the_autopilot_answers_then_a_fresh_request_drives() -> None:
+    rig = FsRig(profile())
+    rig.heartbeat(0.0, mode=MANUAL)
+    rig.answer(0.01, 1)
+    rig.gcs_heartbeat(0.5)
+    assert rig.local(0.6, vx=1.0).out and rig.core.state is CommandState.ACTIVE
+    rig.param(0.7, "FS_GCS_TIMEOUT", 0.0)  # one frame from the autopilot's ids: ArduPilot would fail safe at once
+    released = rig.run_until(0.75, 0.7)
+    assert rig.core.state is CommandState.GCS_SILENT and overrides(released)[-1] == (0, 0)
+    asked = [(t, o.msg.param_id) for t, o in released if o.msg.get_type() == "PARAM_REQUEST_READ"]
+    assert asked == [(0.7, "FS_GCS_TIMEOUT")]  # the autopilot is asked at once
+    rig.param(0.72, "FS_GCS_TIMEOUT", 5.0)  # its answer
+    assert rig.core.state is CommandState.GCS_SILENT
+    again = rig.run_until(0.85, 0.75)
+    assert [(t, o.msg.param_id) for t, o in again if o.msg.get_type() == "PARAM_REQUEST_READ"] == \
+        [(0.8, "FS_GCS_TIMEOUT")]  # changed once more: asked once more, PARAM_CONFIRM_S after the last request
+    assert rig.core.state is CommandState.IDLE and overrides(again)  # 5 s since the GCS's last word: not yet
+    rig.param(0.86, "FS_GCS_TIMEOUT", 5.0)  # said twice: confirmed, nothing more to ask
+    assert rig.local(0.9, vx=1.0).out and rig.core.state is CommandState.ACTIVE  # a fresh request drives
+    assert not [o for _t, o in rig.run_until(5.0, 0.9) if o.msg.get_type() == "PARAM_REQUEST_READ"]
+    assert rig.core.state is not CommandState.GCS_SILENT
+    rig.run_until(5.6, 5.0)
+    assert rig.core.state is CommandState.GCS_SILENT  # the real timeout still holds: 5 s after 0.5 s
 
 
 def test_the_parameters_are_read_again_after_the_autopilot_comes_back() -> None:

@@ -127,6 +127,36 @@ def _feed(core: BridgeCore, msg: Any, now: float) -> list[Any]:
     return out + core.tick(now)
 
 
+def test_one_wheel_reading_stamped_far_back_does_not_move_the_clock_or_the_pose_for_good() -> None:
+    core = BridgeCore(profile_from_dict({}))
+    boot_s = -200.0  # the autopilot has been up 200 s
+    hb = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                           mavlink.MAV_MODE_FLAG_SAFETY_ARMED | 1, 15, 4, 3)
+
+    def real(now: float, left: float) -> None:
+        _feed(core, hb, now)
+        _feed(core, mavlink.MAVLink_attitude_message(round((now - boot_s) * 1000), 0, 0, 0, 0, 0, 0), now)
+        _feed(core, mavlink.MAVLink_wheel_distance_message(round((now - boot_s) * 1e6), 2,
+                                                           [left, left] + [0.0] * 14), now)
+
+    now, left = 0.0, 0.0
+    for _i in range(40):  # 0.4 m/s
+        now += 0.05
+        left += 0.02
+        real(now, left)
+    # One frame: 100 s back, the distances 30 m off. A reboot, as far as the bridge can tell.
+    _feed(core, mavlink.MAVLink_wheel_distance_message(round((now - boot_s - 100.0) * 1e6), 2,
+                                                       [30.0, 30.0] + [0.0] * 14), now + 0.01)
+    for _i in range(20):  # the autopilot's next words
+        now += 0.05
+        left += 0.02
+        real(now, left)
+    assert core.estimate.counters["clock_restored"] == 1
+    assert core.estimate.odometry_time_usec(now) == pytest.approx((now - boot_s) * 1e6, abs=2e3)  # its clock
+    x = core.estimate.pose_at(now).x_m
+    assert x == pytest.approx(left - 0.02, abs=0.06)  # every interval at 0.4 m/s but the one not stepped
+
+
 def test_a_maximal_wheel_stamp_publishes_a_clamped_odometry_stamp() -> None:
     core = BridgeCore(profile_from_dict({}))
     now = _healthy_start(core)

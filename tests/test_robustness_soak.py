@@ -58,7 +58,6 @@ def sizes(core: BridgeCore, emu: Emulator) -> dict[str, int]:
         "estimate.gyro_window": len(est.fusion.gyro_window),
         "estimate.gyro_sources": est.gyro.tracked_sources,
         "estimate.streams": len(est.streams.streams),
-        "identity.seen": len(core.identity._seen),
         "emu.link_in": len(emu._link_in),
         "emu.link_out": len(emu._link_out),
         "emu.outbox": len(emu.autopilot.outbox),

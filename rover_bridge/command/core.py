@@ -257,9 +257,10 @@ class CommandCore:
     # ----------------------------------------------------------------- from the autopilot
 
     def _on_heartbeat(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
-        if not self.identity.is_autopilot_heartbeat(msg):
-            return NOTHING
         vehicle = self.vehicle
+        # While the autopilot's heartbeat is lost another vehicle heartbeat may take its place (Identity).
+        if not self.identity.is_autopilot_heartbeat(msg, relearn=vehicle.link_lost(now_s)):
+            return NOTHING
         if vehicle.last_heartbeat_s is None or vehicle.link_lost(now_s):
             self.gates.gcs_failsafe.autopilot_back(now_s)  # first seen, or back (rebooted?): read its FS_GCS_*
         vehicle.on_heartbeat(msg, now_s)
@@ -274,6 +275,9 @@ class CommandCore:
         return Reaction(consumed=False, out=tuple(self.wheels.advance(now_s, force_output=False)))
 
     def _on_command_ack(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
+        if (msg.get_srcSystem() != self.identity.vehicle_system_id
+                or msg.get_srcComponent() != self.identity.autopilot_component_id):
+            return NOTHING  # another component's answer (or a forged one) says nothing of the autopilot's mode
         if int(msg.command) == mavlink.MAV_CMD_DO_SET_MODE:
             ours = self.targets.mode_change_ack(msg, now_s)
             if ours is not None:

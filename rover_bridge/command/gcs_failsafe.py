@@ -8,7 +8,10 @@ failsafe from ever firing. So the bridge watches the GCS itself, as ArduPilot wo
 
 - it reads FS_GCS_ENABLE, FS_GCS_TIMEOUT and FS_OPTIONS (PARAM_REQUEST_READ at the first heartbeat and when the
   heartbeat comes back after a gap or a reboot; a PARAM_VALUE for them at any time, e.g. after a GCS's
-  PARAM_SET, is taken too);
+  PARAM_SET, is taken too, and one that changes a value, or comes unasked, is asked for again: a single frame
+  (a corrupted or forged one: FS_GCS_TIMEOUT 0 would pause the overrides for good) lasts only until the
+  autopilot's answer replaces it, and a value the autopilot does not confirm in PARAM_ATTEMPTS requests is
+  dropped);
 - the GCS is seen by a HEARTBEAT or MANUAL_CONTROL from the override's system id;
 - with FS_GCS_ENABLE set, once the GCS has been seen and then silent for FS_GCS_TIMEOUT, in a mode where ArduPilot
   would fail safe (Rover/failsafe.cpp failsafe_trigger: not RTL, not HOLD unless FS_OPTIONS bit 0; with
@@ -18,7 +21,8 @@ failsafe from ever firing. So the bridge watches the GCS itself, as ArduPilot wo
   pilot), or when ArduPilot says "GCS Failsafe" or "Radio Failsafe" (its GCS failsafe's words, see
   AUTOPILOT_FAILSAFE_TEXTS; with FS_ACTION 0 there is no mode change): the mode table rules
   again, and the next silence needs the GCS seen once more (else the bridge would stop RTL, which ArduPilot
-  goes on with while the GCS is still silent).
+  goes on with while the GCS is still silent). It also ends when the parameters, as now known, no longer call
+  for it (the autopilot's answer replaced a value it never had): then the GCS is watched again as before.
 
 ArduPilot's own clock then starts at the bridge's last override: the failsafe fires about FS_GCS_TIMEOUT +
 FS_GCS_TIMEOUT + FS_TIMEOUT s after the GCS's last message, not FS_GCS_TIMEOUT + FS_TIMEOUT. Servo output mode
@@ -51,6 +55,7 @@ AUTOPILOT_FAILSAFE_TEXTS = frozenset({"GCS Failsafe", "Radio Failsafe"})
 PARAM_NAMES = ("FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_OPTIONS")
 PARAM_RETRY_S = 2.0
 PARAM_ATTEMPTS = 3  # an autopilot with no such parameters (PX4) answers nothing: stop asking
+PARAM_CONFIRM_S = 0.1  # a changed value is asked for again no sooner than this after the last request
 
 
 @dataclass(frozen=True)
@@ -71,12 +76,15 @@ class FailsafeParams:
 
 
 class ParamReader:
-    """PARAM_REQUEST_READ for PARAM_NAMES until each is answered (a few attempts); PARAM_VALUEs taken any time."""
+    """PARAM_REQUEST_READ for PARAM_NAMES until each is answered (a few attempts); PARAM_VALUEs taken any time, and
+    asked for again when one changes a value or comes unasked, until two in a row agree (module doc)."""
 
     def __init__(self) -> None:
         self.values: dict[str, float] = {}
         self._attempts = 0
         self._next_s: float | None = None
+        self._asked_s = -math.inf
+        self._unconfirmed: set[str] = set()  # taken from a PARAM_VALUE that changed the value: asked for again
 
     @property
     def params(self) -> FailsafeParams | None:
@@ -89,22 +97,27 @@ class ParamReader:
     def restart(self, now_s: float) -> None:
         """Ask again from now (a first heartbeat, or the autopilot back after a gap or a reboot)."""
         self.values.clear()
+        self._unconfirmed.clear()
         self._attempts, self._next_s = 0, now_s
 
     def due(self, now_s: float) -> bool:
         return self._next_s is not None and now_s >= self._next_s
 
     def requests(self, now_s: float, target_system: int, target_component: int) -> list[MAVLinkMessage]:
-        missing = [name for name in PARAM_NAMES if name not in self.values]
+        missing = [name for name in PARAM_NAMES if name not in self.values or name in self._unconfirmed]
         if not missing or self._attempts >= PARAM_ATTEMPTS:
+            for name in self._unconfirmed:  # not the autopilot's word: it did not say it again when asked
+                del self.values[name]
+            self._unconfirmed.clear()
             self._next_s = None
             return []
         self._attempts += 1
         self._next_s = now_s + PARAM_RETRY_S
+        self._asked_s = now_s
         return [mavlink.MAVLink_param_request_read_message(target_system, target_component, name.encode(), -1)
                 for name in missing]
 
-    def on_param_value(self, msg: MAVLinkMessage) -> bool:
+    def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> bool:
         """Take a PARAM_VALUE; True if it was one of ours and changed nothing unusable."""
         name = msg.param_id
         if isinstance(name, bytes):
@@ -113,7 +126,16 @@ class ParamReader:
         value = float(msg.param_value)
         if name not in PARAM_NAMES or not math.isfinite(value):
             return False
+        old = self.values.get(name)
         self.values[name] = value
+        if old == value:
+            self._unconfirmed.discard(name)  # said twice: the autopilot's (an answer, or its repeat)
+        elif old is not None or self._next_s is None:
+            # Changed, or unasked: one frame, maybe a corrupted or forged one. The autopilot's answer replaces it.
+            self._unconfirmed.add(name)
+            self._attempts = 0
+            soon = max(now_s, self._asked_s + PARAM_CONFIRM_S)
+            self._next_s = soon if self._next_s is None else min(self._next_s, soon)
         return True
 
 
@@ -152,7 +174,14 @@ class GcsSilence:
     def silent(self, now_s: float, mode: int | None, params: FailsafeParams | None) -> bool:
         """Whether the bridge must be silent now (WATCHING turns SILENT here when due)."""
         if self.phase is Phase.SILENT:
-            return True
+            last = self.last_seen_s
+            if (params is not None and self._silent_mode is not None and params.fails_safe_in(self._silent_mode)
+                    and last is not None and now_s >= last + params.timeout_s):
+                return True
+            # The parameters it rested on were replaced (the autopilot's answer to a forged or corrupted
+            # PARAM_VALUE): watching again, as if never silent.
+            self.phase = Phase.WATCHING
+            self.rearm(params)
         if now_s < self.due_s or params is None or mode is None or not params.fails_safe_in(mode):
             return False
         # due_s -inf: the gate's one comparison keeps asking while silent
@@ -195,10 +224,11 @@ class GcsFailsafeWatch:
         if not self.reader.due(now_s) or vehicle is None:
             return []
         msgs = self.reader.requests(now_s, vehicle, self.identity.autopilot_component_id)
+        self.silence.rearm(self.reader.params)  # an unconfirmed value may have been dropped
         return [Outgoing(Link.AUTOPILOT, m, self.identity.own_system_id, self.identity.component_id) for m in msgs]
 
     def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> list[Outgoing]:
-        if not self.active or not self._from_autopilot(msg) or not self.reader.on_param_value(msg):
+        if not self.active or not self._from_autopilot(msg) or not self.reader.on_param_value(msg, now_s):
             return []
         params = self.reader.params
         self.silence.rearm(params)

@@ -3,7 +3,8 @@
 - Alive: its HEARTBEAT (from the vehicle's autopilot component) is younger than safety.heartbeat_timeout_s.
 - Armed: MAV_MODE_FLAG_SAFETY_ARMED in that heartbeat.
 - Mode: the heartbeat's custom_mode; after a GCS's DO_SET_MODE that the autopilot ACKed as accepted, the mode
-  it asked for, until the next heartbeat (ArduPilot sends one at once after a mode change) says it.
+  it asked for, until the next heartbeat (ArduPilot sends one at once after a mode change) says it. Heartbeats
+  and ACKs count only from the autopilot's own system and component (rover_bridge.mavlink.identity).
 - A stop mode a GCS asked for (SET_MODE or DO_SET_MODE) counts at once: the heartbeat that reports it may be
   a second away, and a Hold button must stop now. The heartbeat takes over after HOLD_ANTICIPATION_S unless
   the autopilot refused the mode, or as soon as it reports the stop mode itself.

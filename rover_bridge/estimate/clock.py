@@ -18,6 +18,10 @@ at every change of turn rate.
 Discontinuities (never integrated step by step):
 - every stream's stamps jumping back by more than REORDER_WINDOW_S is an autopilot reboot: the
   offset is learnt again ("reboot");
+- a stamp that goes on from where the clock stood before that reboot (one that the re-learnt clock
+  would call a jump) shows the "reboot" was one corrupted or forged stamp: the mapping from before it
+  comes back ("restored"; the one it replaces is kept the same way, so a single stamp never fixes the
+  clock for longer than the autopilot's next one);
 - one stream's stamps far from where the clock says now is (more than JUMP_S ahead, or behind
   without going back on themselves, or returning from such a jump): that stream changed its epoch
   (MAVLink's time_usec is "UNIX epoch or time since boot", and some autopilots switch a stream to
@@ -40,6 +44,7 @@ JUMP_S = 5.0  # a stamp this far from the clock's now (no link is that late) is 
 
 REBOOT = "reboot"
 JUMP = "jump"
+RESTORED = "restored"
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,7 +52,7 @@ class Stamp:
     """A measurement's time on the boot clock, and what the clock made of it."""
 
     t_s: float
-    event: str | None = None  # None, REBOOT or JUMP
+    event: str | None = None  # None, REBOOT, RESTORED or JUMP
     jump_s: float = 0.0  # JUMP: how far this stream's stamps moved (its new shift minus the old)
 
 
@@ -60,6 +65,8 @@ class AutopilotClock:
         self._last_stamp_s: dict[str, float] = {}  # per stream, raw (as sent)
         self._shift_s: dict[str, float] = {}  # per stream: raw stamp - boot clock time
         self._window: tuple[float, float] | None = None  # (start, smallest latency) of the current window
+        # The mapping a reboot replaced (offset, shifts, last stamps): back if the stamps go on from it.
+        self._before: tuple[float, dict[str, float], dict[str, float]] | None = None
 
     def observe(self, stamp_s: float, now_s: float, stream: str = "") -> Stamp:
         """One stamp of `stream` that arrived at now_s: its time on the boot clock (see the module doc)."""
@@ -77,10 +84,13 @@ class AutopilotClock:
                 event, jump, shift = JUMP, -shift, 0.0  # back from another epoch to the boot clock
             elif went_back:
                 event = REBOOT  # the autopilot restarted its clock: every stream starts again
+                self._keep_before(stream, last)
                 self.offset_s = None
                 self._shift_s.clear()
                 self._last_stamp_s = {stream: stamp_s}
                 shift = 0.0
+            elif self._goes_on_from_before(stamp_s, now_s, stream):
+                event, shift = RESTORED, self._restore(stream, stamp_s, last)
             elif abs(stamp_s - shift - boot_now) > JUMP_S:
                 jump = stamp_s - shift - boot_now  # this stream is on another epoch (or garbage)
                 event, shift = JUMP, shift + jump
@@ -96,6 +106,42 @@ class AutopilotClock:
         self._last_now_s = now_s
         self._follow_step(now_s, latency)
         return Stamp(t, event, jump)
+
+    def _keep_before(self, stream: str, last: float | None) -> None:
+        """A reboot: keep the mapping it replaces (the stamps as they were before this one)."""
+        assert self.offset_s is not None
+        self._before = (self.offset_s, dict(self._shift_s), self._lasts_before(stream, last))
+
+    def _lasts_before(self, stream: str, last: float | None) -> dict[str, float]:
+        """The last stamps as they were before this one of `stream` (observe has already noted it)."""
+        lasts = dict(self._last_stamp_s)
+        if last is None:
+            lasts.pop(stream, None)
+        else:
+            lasts[stream] = last
+        return lasts
+
+    def _goes_on_from_before(self, stamp_s: float, now_s: float, stream: str) -> bool:
+        """The stamp is far from the clock's now but where the mapping before the last reboot says now is."""
+        before = self._before
+        offset = self.offset_s
+        if before is None or offset is None:
+            return False
+        if abs(stamp_s - self._shift_s.get(stream, 0.0) - (now_s - offset)) <= JUMP_S:
+            return False
+        old_offset, old_shift, _ = before
+        return abs(stamp_s - old_shift.get(stream, 0.0) - (now_s - old_offset)) <= JUMP_S
+
+    def _restore(self, stream: str, stamp_s: float, last: float | None) -> float:
+        """Back to the mapping before the last reboot (the replaced one kept in its place); this stream's shift."""
+        assert self._before is not None and self.offset_s is not None
+        offset, shifts, lasts = self._before
+        lasts = dict(lasts)
+        lasts[stream] = stamp_s
+        self._before = (self.offset_s, self._shift_s, self._lasts_before(stream, last))
+        self.offset_s, self._shift_s, self._last_stamp_s = offset, dict(shifts), lasts
+        self._window = None
+        return self._shift_s.get(stream, 0.0)
 
     def _follow_step(self, now_s: float, latency_s: float) -> None:
         """A whole window's smallest latency STEP_S above the offset: the offset jumps to it (module doc)."""

@@ -2,7 +2,9 @@
 
 - Every measurement is stamped on the autopilot's boot clock (clock.AutopilotClock): its own stamp,
   never its arrival time. A restarted boot clock (every stream jumping back: a reboot) restarts the
-  filter's clock from the pose published last; one stream on another epoch is re-based (said once).
+  filter's clock from the pose published last; one stream on another epoch is re-based (said once); a
+  "reboot" that one stamp faked is undone at the next stamp that goes on from before it, the same way,
+  and the wheel baseline is taken afresh.
 - WHEEL_DISTANCE: checked increments (wheel_input.WheelInput) -> the filter, the raw wheel odometry
   (for comparison) and the measured wheel speeds the command flow's speed loop reads at once.
 - The gyro: the source in use (gyro.GyroSelector), poison and reordered samples dropped -> the filter.
@@ -17,7 +19,7 @@ import math
 
 from rover_bridge import frames
 from rover_bridge.estimate.anchor import FrameAnchor
-from rover_bridge.estimate.clock import JUMP, REBOOT, AutopilotClock
+from rover_bridge.estimate.clock import JUMP, REBOOT, RESTORED, AutopilotClock
 from rover_bridge.estimate.fusion import Fusion
 from rover_bridge.estimate.gyro import GyroSelector
 from rover_bridge.estimate.resets import ResetCounter
@@ -55,7 +57,8 @@ class Telemetry:
         self.wheel_sample: MeasuredWheels | None = None  # the newest interval's speeds, until taken
         self.heading: tuple[float, float] | None = None  # (stamp, ATTITUDE yaw clockwise from north)
         self.gps: tuple[float, float, float, float] | None = None  # (arrival, stamp, lat, lon)
-        self.counters = {"clock_jumps": 0, "gyro_samples": 0, "gyro_poison": 0, "gyro_stale": 0}
+        self.counters = {"clock_jumps": 0, "clock_restored": 0, "gyro_samples": 0, "gyro_poison": 0,
+                         "gyro_stale": 0}
         self._jumps_said: set[str] = set()
 
     def handle(self, msg: MAVLinkMessage, mtype: str, now_s: float) -> list[Outgoing]:
@@ -115,6 +118,12 @@ class Telemetry:
         out: list[Outgoing] = []
         if st.event == REBOOT:
             self.fusion.submit(now_s, self.fusion.reboot, published_t, st.t_s)
+        elif st.event == RESTORED:
+            # That "reboot" was one stamp (corrupted or forged): back on the clock from before it. The wheel
+            # baseline may be that stamp's reading: the next reading is a new one, never a step from it.
+            self.fusion.submit(now_s, self.fusion.reboot, published_t, st.t_s)
+            self.wheels.reset()
+            self.counters["clock_restored"] += 1
         elif st.event == JUMP:
             self.counters["clock_jumps"] += 1
             if stream not in self._jumps_said and len(self._jumps_said) < MAX_JUMPS_SAID:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import Profile
@@ -21,7 +21,9 @@ class Identity:
     override_source_system: int = 255
     learned_system_id: int | None = None
     autopilot_component_id: int = 1
-    _seen: set[int] = field(default_factory=set)
+    _autopilot_learnt: bool = False
+    _autopilot_confirmed: bool = False  # its heartbeat came more than once: no single (forged) frame
+    _learnt_from: object = None  # the heartbeat it was learnt from (both cores ask about each one)
 
     @classmethod
     def from_profile(cls, profile: Profile) -> Identity:
@@ -39,14 +41,26 @@ class Identity:
         """System id of the bridge's own messages: the vehicle's (it is part of the vehicle)."""
         return self.vehicle_system_id or 1
 
-    def is_autopilot_heartbeat(self, msg: mavlink.MAVLink_heartbeat_message) -> bool:
-        """True for a heartbeat from the vehicle's autopilot (learning the system id on the first one)."""
+    def is_autopilot_heartbeat(self, msg: mavlink.MAVLink_heartbeat_message, relearn: bool = False) -> bool:
+        """True for a heartbeat from the vehicle's autopilot: the system and component of the first vehicle
+        heartbeat (of the configured system, if one is), learnt then. `relearn` (the caller's: the autopilot's
+        heartbeat is lost) lets another vehicle heartbeat take the place of one heard only once, so that a first
+        heartbeat that was a corrupted or forged frame does not shut the real autopilot out for good; one heard
+        twice keeps it. Any other component of the system (a companion, a peripheral, a forged frame) is not the
+        autopilot: its mode and arming say nothing."""
         if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in _NOT_A_VEHICLE:
             return False
-        src_system = msg.get_srcSystem()
-        if self.configured_system_id:
-            return bool(src_system == self.configured_system_id)
-        if self.learned_system_id is None:
-            self.learned_system_id = src_system
-            self.autopilot_component_id = msg.get_srcComponent()
-        return bool(src_system == self.learned_system_id)
+        src_system, src_component = msg.get_srcSystem(), msg.get_srcComponent()
+        if self.configured_system_id and src_system != self.configured_system_id:
+            return False
+        learnt = self._autopilot_learnt or self.learned_system_id is not None
+        if not learnt or (relearn and not self._autopilot_confirmed):
+            if not self.configured_system_id:
+                self.learned_system_id = src_system
+            self.autopilot_component_id = src_component
+            self._autopilot_learnt, self._learnt_from = True, msg
+            return True
+        ours = bool(src_system == self.vehicle_system_id and src_component == self.autopilot_component_id)
+        if ours and msg is not self._learnt_from:
+            self._autopilot_confirmed, self._learnt_from = True, None
+        return ours
