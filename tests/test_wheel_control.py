@@ -20,7 +20,7 @@ from rover_bridge.command.outputs import OutputMap, SpeedCurve
 from rover_bridge.command.wheel_control import (
     HANDOVER_S,
     STALL_S,
-    SpeedFilter,
+    SpeedWindow,
     WheelSpeedLoop,
     WiringFault,
     WiringMonitor,
@@ -37,6 +37,10 @@ RANGE = (-TOP, TOP)
 
 
 def loop(**changes: float) -> WheelSpeedLoop:
+    """The loop with these gains; kp and ki_1_s given alone stand for both motions (driving and turning)."""
+    for name in ("kp", "ki_1_s"):
+        if name in changes:
+            changes.setdefault(f"turn_{name}", changes[name])
     return WheelSpeedLoop(dataclasses.replace(ControlParams(), **changes), RANGE, RANGE)  # type: ignore[arg-type]
 
 
