@@ -19,7 +19,9 @@ map (the measured curve where the profile has one: the feedforward).
   the measurement as it was when that was measured (`delay`: the measurement's own age, half the
   span it averages, see below). The error is then only what the feedforward gets wrong (a weak motor,
   a load, a deadband), not the plant's lag or the encoder's delay: a ramp does not wind the
-  integrator up, and a loop tuned for one plant does not ring on another.
+  integrator up, and a loop tuned for one plant does not ring on another. The integrators learn only once
+  the reference has settled (SETTLED_FRACTION): a plant faster or slower than the model (the defaults
+  know neither) shows a transient error that is its lag, not a deficit to integrate.
 - The gains come from the rover: `rover-bridge calibrate` measures each motion's lag and the encoder's
   delay and writes them by the lambda (IMC) rule (rover_bridge.app.calibration.loop_gains). The
   defaults assume nothing: no proportional gain (a plant that answers at once, behind a delay of two
@@ -48,7 +50,7 @@ map (the measured curve where the profile has one: the feedforward).
   encoder_timeout_s (the first after a silence) is the mean over the silence: the window starts
   again. Encoders silent for encoder_timeout_s are stale (`closed` False: the core says so once).
 - Slip (the estimator's verdict): the integrators are frozen (slipping wheels read too fast).
-- Stall: a wheel below STILL_FRACTION of its target for STALL_S while commanded beyond
+- Stall: a wheel below STALL_FRACTION of its target for STALL_S while commanded beyond
   BREAKAWAY_FRACTION of its top speed is held (stalled or jammed): the integrators stop and the reference
   model starts again from the measured speeds, so when it is released it spins up to the steady command,
   not a wound-up one. Below that command a still wheel is
@@ -72,6 +74,7 @@ from rover_bridge.kinematics import MeasuredWheels, WheelSpeeds
 from rover_bridge.params import ControlParams
 
 STILL_FRACTION = 0.1  # measured below this fraction of the target: the wheel does not turn
+STALL_FRACTION = 0.1  # the loop: a wheel below this fraction of its target, commanded past the breakaway,
 STALL_S = 0.0  # ... for this long: the loop treats it as stalled (integrators held)
 BREAKAWAY_FRACTION = 0.4  # ... while commanded at least this fraction of its top speed (below: a deadband to find)
 BACKWARDS_FRACTION = 0.2  # measured at least this fraction of the target, opposite sign: wrong way
@@ -83,6 +86,9 @@ RUNAWAY_MARGIN = 0.1  # what a closed loop does to a wheel whose encoder is anot
 # sample (two intervals) is not a silence yet.
 OVERDUE_INTERVALS = 2.5
 HANDOVER_S = 1.0  # the slew's window after the loop (re)starts (docstring)
+# The integrators learn only while the reference has settled within this fraction of the target (or of the top
+# speed, near zero): during a step the plant's own lag, whatever it is, is not mistaken for a weak motor.
+SETTLED_FRACTION = 0.05
 HISTORY_S = 1.0  # how far back the reference model's past is kept for the measurement's delay
 
 
@@ -123,7 +129,7 @@ class SpeedWindow:
         parts = self._parts
         parts.append((span, s.left_rad_s * span, s.right_rad_s * span))
         total = sum(p[0] for p in parts)
-        while len(parts) > 1 and total - parts[0][0] >= self.window_s:
+        while len(parts) > 1 and total - parts[0][0] >= self.window_s - 1e-9:
             total -= parts.popleft()[0]
         self.span_s = total
         self.value = WheelSpeeds(sum(p[1] for p in parts) / total, sum(p[2] for p in parts) / total)
@@ -193,6 +199,7 @@ class WheelSpeedLoop:
         self.timeout_s = params.encoder_timeout_s
         self.ranges = (left_range, right_range)  # (fastest reverse, fastest forward), rad/s
         self.i_max = params.integrator_max_fraction * min(max(-lo, hi) for lo, hi in self.ranges)
+        self.settled_floor = SETTLED_FRACTION * min(max(-lo, hi) for lo, hi in self.ranges)
         self.window = SpeedWindow(params.speed_window_s, params.encoder_timeout_s)
         self.reference = ReferenceModel((params.reference_s, params.turn_reference_s))
         self.integral = [0.0, 0.0]  # (common, turn)
@@ -262,9 +269,14 @@ class WheelSpeedLoop:
             raw[k] != asked[k] or (raw[k] != 0.0 if targets[k] == 0.0 else (raw[k] > 0.0) != (targets[k] > 0.0))
             for k in (0, 1))
         if not freeze and not any(held) and dt_s > 0.0:
+            # While the reference still moves, what the plant does is its lag, not a deficit: learn nothing new (a
+            # correction that proves too large, a jam's onset, may still unwind). One tolerance for both motions, on
+            # the larger target: the two settle together, or the one settled first would take a wheel's whole deficit.
+            tolerance = SETTLED_FRACTION * max(abs(modes[0]), abs(modes[1]), self.settled_floor)
             for m in (0, 1):
+                moving = abs(modes[m] - reference[m]) > tolerance
                 grown = self.integral[m] + self.ki[m] * errors[m] * dt_s
-                if restrained and abs(grown) > abs(self.integral[m]):
+                if (restrained or moving) and abs(grown) > abs(self.integral[m]):
                     continue
                 self.integral[m] = max(-self.i_max, min(self.i_max, grown))
         self._learnt_at = list(targets)
@@ -272,14 +284,14 @@ class WheelSpeedLoop:
         return LoopResult(WheelSpeeds(u[0], u[1]), saturated, True)
 
     def _stalled(self, targets: tuple[float, float], speeds: tuple[float, float], now_s: float) -> list[bool]:
-        """Which wheels have been below STILL_FRACTION of their target for STALL_S."""
+        """Which wheels have been below STALL_FRACTION of their target for STALL_S, past the breakaway command."""
         held = [False, False]
         last = self._last or [0.0, 0.0]
         for k in (0, 1):
             # Still while its command is past what starts a wheel (a deadband, a curved map at low speed): the
             # integrator must be free to find that command; beyond it, a still wheel is jammed.
             top = self.ranges[k][1] if targets[k] > 0.0 else -self.ranges[k][0]
-            if abs(speeds[k]) < STILL_FRACTION * abs(targets[k]) and abs(last[k]) >= BREAKAWAY_FRACTION * top:
+            if abs(speeds[k]) < STALL_FRACTION * abs(targets[k]) and abs(last[k]) >= BREAKAWAY_FRACTION * top:
                 since = self._still_since[k]
                 self._still_since[k] = since = now_s if since is None else since
                 held[k] = now_s - since >= STALL_S
@@ -400,5 +412,8 @@ class WiringMonitor:
         for w, kind in conditions:
             since = self._since.setdefault(f"{w}:{kind}", now_s)
             if now_s - since >= self.hold_s:
+                if kind == "backwards" and ("both", "swapped") in conditions:
+                    # One wheel's timer began first, but the two are crossed now: the name that says what to check.
+                    return WiringFault("both", "swapped")
                 return WiringFault(w, kind)
         return None
