@@ -77,7 +77,7 @@ from sitl.params import WHEEL_PARAM_PREFIXES, Param, default_params, set_value
 from sitl.physics import PhysicsState, encoder_counts, pwm_to_command
 from sitl.rc import RcServos
 from sitl.rover import Rover
-from sitl.skid import ARDUPILOT_SKID, LoopEncoders
+from sitl.skid import ARDUPILOT_SKID, SkidLoop
 from sitl.streams import GROUP_OF_MESSAGE, HOME_POSITION, STREAM_GROUPS, STREAMABLE, Streams
 
 __all__ = ["MODE_GUIDED", "MODE_HOLD", "MODE_MANUAL", "Autopilot", "ReceivedMessage"]
@@ -123,7 +123,7 @@ class Autopilot:
         self._physics = PhysicsState()  # the last state update() saw
         self._boot_vehicle()
         # ArduPilot SITL's skid plant: its encoders are read, and WHEEL_DISTANCE sent, in Rover's loop (sitl/skid.py).
-        self.loop_encoders = LoopEncoders(self.param, self.rover.loop_period_us, vehicle.loop_late_rate, seed) \
+        self.skid_loop = SkidLoop(self.param, self.rover.loop_period_us, vehicle.loop_late_rate, seed) \
             if vehicle.plant == ARDUPILOT_SKID else None
 
     def _boot_vehicle(self) -> None:
@@ -275,8 +275,8 @@ class Autopilot:
 
     def wheel_distances_m(self, physics: PhysicsState) -> tuple[float, float]:
         """(index 0, index 1) cumulative distances since boot, as WHEEL_DISTANCE reports them."""
-        if self.loop_encoders is not None:
-            return self.loop_encoders.distances_m()
+        if self.skid_loop is not None:
+            return self.skid_loop.distances_m()
         cpr = self.vehicle.encoder_cpr
         counts = {
             "left": encoder_counts(physics.left_encoder_angle_rad, cpr) - self._encoder_offset[0],
@@ -328,7 +328,7 @@ class Autopilot:
         text = self.extnav.update(now_us)
         if text is not None and self.param("VISO_TYPE") == 1:
             self.send_text(_P.MAV_SEVERITY_INFO, text)
-        enc = self.loop_encoders
+        enc = self.skid_loop
         if enc is not None and enc.update(now_us, physics, self.interval_us(WHEEL_DISTANCE)):
             self.outbox += messages.build_all(self, WHEEL_DISTANCE, enc.stamp_us, physics)
         rover = self.rover
@@ -357,7 +357,7 @@ class Autopilot:
         extra = (HOME_POSITION,) if HOME_POSITION in self.streams.intervals_us else ()
         for mid in (*STREAMABLE, *extra):
             interval = self.interval_us(mid)
-            if interval is None or (mid == WHEEL_DISTANCE and self.loop_encoders is not None):
+            if interval is None or (mid == WHEEL_DISTANCE and self.skid_loop is not None):
                 continue  # off, or sent from the loop (the skid plant)
             if mid == _P.MAVLINK_MSG_ID_LOCAL_POSITION_NED and not self.has_position():
                 continue  # ArduPilot sends no local position before its EKF has one
@@ -385,8 +385,8 @@ class Autopilot:
         self.extnav = ExtNavConsumer(self._extnav_settings())  # a new EKF: no position until ODOMETRY again
         self.mission.reset_cursor()
         self._boot_vehicle()
-        if self.loop_encoders is not None:
-            self.loop_encoders.reset(now_us, self.rover.loop_period_us)
+        if self.skid_loop is not None:
+            self.skid_loop.reset(now_us, self.rover.loop_period_us)
         cpr = self.vehicle.encoder_cpr
         self._encoder_offset = (
             encoder_counts(physics.left_encoder_angle_rad, cpr),

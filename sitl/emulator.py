@@ -5,7 +5,7 @@ arrived (non-blocking) and hands the due ones, through the inbound fault model, 
 (bytes of a stream link, TCP, are handed on one step later, and lost if the client closes before
 then, as ArduPilot's SITL serial port does), (3) advances physics by ``dt_s`` of simulated time in
 substeps of at most ``vehicle.physics_dt_s`` (and split at Rover's loop instants for the skid plant, whose
-encoders are read there: sitl/skid.py), recomputing the servo outputs before each substep, and
+encoders are read and motors updated only there: sitl/skid.py), recomputing the servo outputs before each substep, and
 (4) sends the replies and every stream message that is due, through the outbound fault model.
 Simulated time is kept in integer microseconds, so a run is a pure function of the seed and the
 input sequence.
@@ -167,9 +167,12 @@ class Emulator:
         end = now + dt_us
         while t < end:
             self.autopilot.update(t, self._phys)
-            enc = self.autopilot.loop_encoders  # the skid plant's encoders are read at the loop's own instants
+            enc = self.autopilot.skid_loop  # the skid plant's encoders are read at the loop's own instants
             sub = min(sub_max_us, end - t, enc.next_loop_us - t if enc is not None and enc.next_loop_us > t else end)
-            inputs = self._world.inputs(self._phys, t, *self.autopilot.wheel_commands())
+            commands = self.autopilot.wheel_commands()
+            if enc is not None and not self.autopilot.rebooting:
+                commands = enc.motors(commands)  # the output of Rover's last loop
+            inputs = self._world.inputs(self._phys, t, *commands)
             self._phys = self._physics_step(self._phys, inputs, sub / 1e6, self.vehicle)
             t += sub
         self._now_us = end

@@ -26,6 +26,9 @@ What the real SITL (``--model rover-skid``) does, copied as behaviour, read in A
   increments of one and two loops' travel); 20 Hz gives 40 and 60 ms.
 - The scheduler: a loop now and then starts a millisecond late (``loop_late_rate`` of the loops), which
   shows as gaps of 19/21 and 39/41 ms.
+- The motors (Rover/Rover.cpp: read_radio first in the loop, set_servos later, GCS update_receive near its
+  end): an RC override is parsed at the end of the loop it arrived in and output by the next, so it reaches the
+  motors 20 to 40 ms after it arrives, and the PWM holds between loops (SITL's physics runs on the last output).
 
 Measured on the real SITL (Rover 4.7.0-dev, rover-skid, WENC_TYPE 10, WENC_POS_Y +-0.8185, both motors at
 1600 us, EXTRA1 asked for at 50 Hz, 8 s): 317 gaps: 237 of 20 ms, 76 of 40 ms, 3 of 19, 3 of 41 and 1 of 39;
@@ -106,11 +109,13 @@ def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleC
     )
 
 
-class LoopEncoders:
-    """SITL's two quadrature encoders read in Rover's loop, and when that loop sends WHEEL_DISTANCE (module doc).
+class SkidLoop:
+    """Rover's loop as the skid plant sees it (module doc): SITL's two encoders read in it, WHEEL_DISTANCE sent
+    from it, and the motors' PWM updated only in it.
 
     ``update`` at every physics substep boundary (the emulator splits its substeps at ``next_loop_us``); it runs
-    the loop when one is due and says whether WHEEL_DISTANCE goes out in it, stamped ``stamp_us``."""
+    the loop when one is due and says whether WHEEL_DISTANCE goes out in it, stamped ``stamp_us``. ``motors``
+    then gives the commands the motors run on until the next loop."""
 
     def __init__(self, param: Callable[[str], float], loop_period_us: int, late_rate: float, seed: int) -> None:
         self._param = param
@@ -129,12 +134,15 @@ class LoopEncoders:
         self._last_sent_ms: int | None = None
         self._interval_ms: int | None = None
         self.stamp_us = boot_us
+        self._ran = False
+        self._pending = self._applied = (0.0, 0.0)
 
     def update(self, now_us: int, physics: PhysicsState, interval_us: int | None) -> bool:
         """Run the loop if it is due: read the encoders; True when WHEEL_DISTANCE is sent in this loop."""
         if now_us < self.next_loop_us:
             return False
         self._loop += 1
+        self._ran = True
         late = LATE_US if self._late_rate and self._rng.random() < self._late_rate else 0
         self.next_loop_us = max(now_us + 1, self._boot_us + self._loop * self._period_us + late)
         now_ms = (now_us - self._boot_us) // 1000
@@ -164,6 +172,15 @@ class LoopEncoders:
         if now_ms - self._last_sent_ms > interval_ms:  # ... without catching up a long gap
             self._last_sent_ms = now_ms
         return True
+
+    def motors(self, commands: tuple[float, float]) -> tuple[float, float]:
+        """The motor commands from the last loop, given the ones the RC state asks for now. A loop outputs what
+        the one before it parsed (read_radio at a loop's start, update_receive at its end): an override reaches
+        the motors 20 to 40 ms after it arrives, and holds there for a whole loop."""
+        if self._ran:
+            self._ran = False
+            self._applied, self._pending = self._pending, commands
+        return self._applied
 
     def distances_m(self) -> tuple[float, float]:
         """(instance 0, instance 1) cumulative distances of the last read."""

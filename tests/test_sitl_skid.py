@@ -45,22 +45,32 @@ def wheel_distance(emu: Emulator, after_s: float = 0.0) -> list[MAVLinkMessage]:
     return [m for t, m in emu.sent_log if m.get_type() == "WHEEL_DISTANCE" and t >= after_s]
 
 
+def step_trace(emu: Emulator, seconds: float) -> list[tuple[float, float, float]]:
+    """(time since now, speed, yaw rate) every 1 ms."""
+    t0 = emu.sim_time_s
+    trace = []
+    while emu.sim_time_s < t0 + seconds - 1e-9:
+        emu.step(0.001)
+        trace.append((emu.sim_time_s - t0, emu.truth.v_m_s, emu.truth.yaw_rate_rad_s))
+    return trace
+
+
 def test_both_motors_step_lags_0_29_s_and_does_not_turn() -> None:
     emu = emulator()
     run(emu, 0.5, 1500, 1500)
-    t0 = emu.sim_time_s
-    trace: list[tuple[float, float, float]] = []
+    emu.step(0.005)  # 5 ms into a loop
     emu.set_radio(1, 1600)
     emu.set_radio(3, 1600)
-    while emu.sim_time_s < t0 + 2.0 - 1e-9:
-        emu.step(0.001)
-        trace.append((emu.sim_time_s - t0, emu.truth.v_m_s, emu.truth.yaw_rate_rad_s))
+    trace = step_trace(emu, 2.0)
+    # Parsed at the end of this loop, output by the next: the motors move 35 ms later (15 + 20).
+    start = next(t for t, v, _ in trace if v > 0.0) - 0.001
+    assert start == pytest.approx(0.035, abs=1e-6)
     target = 0.2 * MAX_SPEED_M_S
-    at_tau = next(v for t, v, _ in trace if t >= TAU_S - 1e-9)
-    assert at_tau == pytest.approx(target * (1.0 - math.exp(-1.0)), rel=0.02)  # 63 % after one time constant
-    t63 = next(t for t, v, _ in trace if v >= 0.632 * target)
-    assert 0.27 <= t63 <= 0.30
-    assert trace[-1][1] == pytest.approx(target, rel=1e-3)
+    at_tau = next(v for t, v, _ in trace if t >= start + TAU_S - 1e-9)
+    assert at_tau == pytest.approx(target * (1.0 - math.exp(-1.0)), rel=0.01)  # 63 % after one time constant
+    t63 = next(t for t, v, _ in trace if v >= 0.632 * target) - start
+    assert 0.28 <= t63 <= 0.29
+    assert trace[-1][1] == pytest.approx(target, rel=2e-3)  # 6.9 time constants
     assert max(abs(w) for _, _, w in trace) == 0.0
     assert emu.physics_state.accel_m_s2 == pytest.approx(0.0, abs=0.01)
 
@@ -69,14 +79,30 @@ def test_a_differential_command_turns_at_once_while_the_common_speed_still_lags(
     emu = emulator()
     run(emu, 3.0, 1600, 1600)  # cruising at 0.8 m/s
     emu.set_radio(1, 1700)  # +0.2 on the left only: a clockwise turn and a new common target
-    emu.step(0.005)
+    trace = step_trace(emu, 0.1)
     expected = (0.4 - 0.2) * TURN_RATE_RAD_S
-    assert emu.truth.yaw_rate_rad_s == pytest.approx(expected, rel=1e-9)  # one 5 ms step: already all of it
-    assert emu.truth.v_m_s < 0.81  # the speed (target 1.2 m/s) has only started to move
+    turning = [(t, v, w) for t, v, w in trace if w != 0.0]
+    assert 0.02 <= turning[0][0] <= 0.041  # the next loop but one
+    assert turning[0][2] == pytest.approx(expected, rel=1e-9)  # all of it in its first millisecond
+    assert all(w == pytest.approx(expected, rel=1e-9) for _, _, w in turning)
+    assert turning[0][1] < 0.802  # while the speed (target 1.2 m/s) has only started to move
     stopped = emulator()
-    run(stopped, 0.5, 1400, 1600)  # spin in place from rest: full rate at once, no forward speed
+    run(stopped, 0.5, 1400, 1600)  # spin in place from rest: the full rate, no forward speed
     assert stopped.truth.yaw_rate_rad_s == pytest.approx(-0.4 * TURN_RATE_RAD_S, rel=1e-9)
     assert stopped.truth.v_m_s == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_motors_take_an_override_at_the_loop_after_the_one_that_parsed_it_and_hold_it() -> None:
+    emu = emulator()
+    run(emu, 1.0, 1500, 1500)
+    emu.step(0.012)  # 12 ms into the loop that began at 1.000 s
+    emu.set_radio(1, 1600)
+    trace = step_trace(emu, 0.06)
+    moving = [t for t, v, _ in trace if v != 0.0]
+    assert moving[0] == pytest.approx(0.028 + 0.001, abs=1e-6)  # loop at 1.020 parses it, 1.040 outputs it
+    emu.set_radio(1, 1500)
+    emu.step(0.001)  # within a loop the motors keep the last output
+    assert emu.truth.yaw_rate_rad_s > 0.0
 
 
 def test_pure_step_is_the_sim_rover_skid_mix() -> None:
@@ -157,7 +183,7 @@ def test_the_plant_must_report_the_right_wheel_first_and_be_known() -> None:
 
 def test_the_default_plant_is_unchanged_and_sends_wheel_distance_at_the_step_ends() -> None:
     emu = Emulator(VehicleConfig(start_armed=True), record_sent=True)
-    assert emu.autopilot.loop_encoders is None
+    assert emu.autopilot.skid_loop is None
     emu.set_param("SR0_EXTRA1", 50)
     run(emu, 1.0, 1600, 1600)
     gaps = {(b.time_usec - a.time_usec) // 1000 for a, b in itertools.pairwise(wheel_distance(emu))}
