@@ -59,6 +59,7 @@ class Rig:
     vehicle: VehicleConfig = IMPERFECT
     scenario: Scenario = field(default_factory=Scenario)
     seed: int = 1
+    step_s: float = STEP_S  # the lockstep's step: how finely the bridge sees the emulator's timing
 
     def __post_init__(self) -> None:
         self.emu = Emulator(self.vehicle, self.scenario, seed=self.seed, record_sent=True)
@@ -85,7 +86,7 @@ class Rig:
         self._to_autopilot(self.core.handle(Incoming(Link.GCS, wired), self.t).out)
 
     def step(self) -> None:
-        self.emu.step(STEP_S)
+        self.emu.step(self.step_s)
         self.t = self.emu.sim_time_s
         log = self.emu.sent_log
         assert log is not None

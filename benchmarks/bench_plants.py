@@ -1,0 +1,60 @@
+"""The wheel loop on every plant (issue 42): one table, the issue's metrics per plant, lockstep, ground truth.
+
+    python benchmarks/bench_plants.py             # every plant (about 10 s)
+    python benchmarks/bench_plants.py --plant skid --detail
+
+The plants, the robot, the profile, the drive and the metrics: benchmarks/plants.py. A value over its target is
+marked with *; tests/test_plants.py asserts the same per plant and metric.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+import plants
+
+HEADINGS = ("overshoot %", "steady %", "arc turn %", "spin turn %", "yaw rms deg/s", "odometry %")
+
+
+def row(name: str, values: list[float], targets: list[float] | None = None) -> str:
+    cells = []
+    for i, v in enumerate(values):
+        mark = "*" if targets is not None and v > targets[i] else " "
+        cells.append(f"{v:>{len(HEADINGS[i]) - 1}.2f}{mark}")
+    return f"{name:<12s}" + "  ".join(f"{c:>{len(h)}s}" for c, h in zip(cells, HEADINGS, strict=True))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    ap.add_argument("--plant", action="append", choices=list(plants.PLANTS), help="only this plant (repeatable)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--detail", action="store_true", help="each step's overshoot and steady error, signed turns")
+    args = ap.parse_args(argv)
+    logging.disable(logging.WARNING)
+    targets = [getattr(plants.TARGETS, name) for name in plants.METRICS]
+    profile = plants.bench_profile()
+    c = profile.control
+    print(f"[control] defaults: kp {c.kp}, ki {c.ki_1_s} 1/s, reference {c.reference_s} s, filter "
+          f"{c.speed_filter_hz} Hz; robot: the ardupilot-sitl-skid profile's; WHEEL_DISTANCE asked at "
+          f"{profile.estimator.stream_rate_hz:g} Hz")
+    print("steps 0 -> 0.5 -> 1.0 -> 1.5 -> 0 m/s, arc 0.8 m/s + 0.4 rad/s then straight, spin 0.8 rad/s")
+    print(f"{'':12s}" + "  ".join(HEADINGS))
+    print(row("target <=", targets))
+    for name in args.plant or plants.PLANTS:
+        trace = plants.drive(name, args.seed)
+        m = plants.metrics(trace)
+        print(row(name, [getattr(m, metric) for metric in plants.METRICS], targets))
+        if args.detail:
+            over = ", ".join(f"{v:.1f}" for v in plants.step_overshoots_pct(trace))
+            steady = ", ".join(f"{v:+.2f}" for v in plants.steady_errors_pct(trace))
+            print(f"{'':12s}overshoot per step (0.5, 1.0, 1.5, stop) {over} %; steady (signed) {steady} %; "
+                  f"arc {plants.turn_error_pct(trace, 'arc', plants.ARC[1]):+.1f} %, spin "
+                  f"{plants.turn_error_pct(trace, 'spin', plants.SPIN_RAD_S):+.1f} %, odometry "
+                  f"{plants.odometry_error_pct(trace):+.2f} %")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
