@@ -36,8 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     targets = [getattr(plants.TARGETS, name) for name in plants.METRICS]
     profile = plants.bench_profile()
     c = profile.control
-    print(f"[control] defaults: kp {c.kp}, ki {c.ki_1_s} 1/s, reference {c.reference_s} s, filter "
-          f"{c.speed_filter_hz} Hz; robot: the ardupilot-sitl-skid profile's; WHEEL_DISTANCE asked at "
+    print(f"[control] defaults: kp {c.kp}, ki {c.ki_1_s} 1/s, reference {c.reference_s} s, speed "
+          f"{c.speed_window_s} s window; robot: the ardupilot-sitl-skid profile's; WHEEL_DISTANCE asked at "
           f"{profile.estimator.stream_rate_hz:g} Hz")
     print("steps 0 -> 0.5 -> 1.0 -> 1.5 -> 0 m/s, arc 0.8 m/s + 0.4 rad/s then straight, spin 0.8 rad/s")
     print(f"{'':12s}" + "  ".join(HEADINGS))

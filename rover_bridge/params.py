@@ -230,7 +230,7 @@ class ControlParams:
         "constant: motor lag, the body's inertia); the error is taken against the target through this lag, so "
         "a ramp does not wind the integrator up.", unit="s", lo=0.01, hi=2.0)
     turn_kp: float = _p(0.0, "Turning (half the wheels' difference): as kp.", unit="(rad/s)/(rad/s)", lo=0.0, hi=20.0)
-    turn_ki_1_s: float = _p(2.0, "Turning: as ki_1_s.", unit="1/s", lo=0.0, hi=200.0)
+    turn_ki_1_s: float = _p(4.0, "Turning: as ki_1_s.", unit="1/s", lo=0.0, hi=200.0)
     turn_reference_s: float = _p(
         0.3, "Turning: as reference_s (a skid rover may turn at once: ArduPilot's SITL model does).",
         unit="s", lo=0.01, hi=2.0)
