@@ -134,7 +134,10 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
         proc.wait()
 
 
-def drive_ardupilot(binary: str, instance: int = 6) -> plants.Trace:
+INSTANCE = 13  # SITL's ports 5760/5762 + 10 x instance: not the tests' 4, 5 and 6, which may be running
+
+
+def drive_ardupilot(binary: str, instance: int = INSTANCE) -> plants.Trace:
     """plants.drive's requests on a real SITL (module docstring); SITL's ports 5760/5762 + 10 x instance."""
     defaults = Path(binary).resolve().parents[3] / "Tools" / "autotest" / "default_params"
     serial0, serial1 = 5760 + 10 * instance, 5762 + 10 * instance
