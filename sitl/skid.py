@@ -69,7 +69,7 @@ def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleC
     max_speed = vehicle.max_wheel_rad_s * 0.5 * (vehicle.left_radius_true_m + vehicle.right_radius_true_m)
     target = 0.5 * (m_left + m_right) * max_speed
     tau = vehicle.motor_time_constant_s
-    # The first-order lag of the common speed, discretised exactly (SIM_Rover integrates it at 1200 Hz).
+    # The first-order lag of the common speed, discretised exactly (SIM_Rover takes small Euler steps).
     v_end = target + (state.v_m_s - target) * math.exp(-dt_s / tau)
     ds = target * dt_s + (state.v_m_s - target) * tau * (1.0 - math.exp(-dt_s / tau))
     yaw_rate = (m_left - m_right) * max_speed / vehicle.track_true_m  # clockwise +, no lag
