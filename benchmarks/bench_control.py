@@ -1,7 +1,8 @@
 """Wheel speed control on imperfect motors: open loop beside closed loop, the same runs (lockstep).
 
     python benchmarks/bench_control.py            # the table
-    python benchmarks/bench_control.py --patch P  # the same, open loop also with a calibrated profile patch
+    python benchmarks/bench_control.py --patch P  # the same, open and closed loop also with a profile patch
+    python benchmarks/bench_control.py --calibrate  # the patch from `calibrate`'s sequence on the same rover
 
 The emulated rover: left motor 20 % weak, a 40 us ESC deadband, a curved PWM -> speed map
 (speed = command ** 1.5), and, where a case says so, a 15 % load window or a stalled wheel. The whole
@@ -267,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         patched = load_profile(args.patch)
         patched = replace(patched, estimator=replace(patched.estimator, stream_rate_hz=20.0))
         modes.append(("open loop + patch", replace(patched, control=replace(patched.control, mode="open_loop"))))
+        modes.append(("closed loop + patch", replace(patched, control=replace(patched.control, mode="closed_loop"))))
     print("vehicle: left motor 20 % weak, 40 us deadband, speed = command^1.5; lockstep, ground truth")
     for name, case in CASES:
         print(f"\n{name}")

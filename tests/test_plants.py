@@ -2,11 +2,7 @@
 the plants, the robot, the drive, the metrics and their targets; `python benchmarks/bench_plants.py` prints the
 table). One case per plant, one lockstep drive each (about 2.5 s of CPU), every metric against its target.
 
-The plants the current loop fails are strict xfails: each turns into a failure the day the loop gets that plant
-right, so that the mark is then removed, not forgotten. Measured with the loop as of this file (seed 1): lagged
-overshoots 23 % (its 0.29 s per-wheel lag against the loop's 0.15 s reference winds the integrator up); on the
-skid plant the speed overshoots 29 % and the wheels' difference rings (the yaw rate swings +-2 rad/s): the arc's
-turn rate 61 % off, the spin's 121 %, yaw-rate rms 47 deg/s on the straight after the arc.
+Each plant must meet every target with the packaged defaults: no plant is excused.
 """
 
 from __future__ import annotations
@@ -19,18 +15,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 import plants
 
-ISSUE_42 = {
-    "lagged": "a 0.29 s lag in both modes: 23 % overshoot",
-    "skid": "ArduPilot's skid model: 29 % overshoot; the instant differential mode rings (arc 61 %, spin 121 % off, "
-            "yaw rms 47 deg/s)",
-}
-
 
 def cases() -> list[object]:
-    return [pytest.param(plant, id=plant.replace(" ", ""),
-                         marks=[pytest.mark.xfail(strict=True, reason=f"issue 42: {ISSUE_42[plant]}")]
-                         if plant in ISSUE_42 else [])
-            for plant in plants.PLANTS]
+    return [pytest.param(plant, id=plant.replace(" ", "")) for plant in plants.PLANTS]
 
 
 @pytest.mark.parametrize("plant", cases())
@@ -40,9 +27,8 @@ def test_the_default_loop_meets_the_issue_targets_on_every_plant(plant: str) -> 
     assert over == {}, f"{plant}: over target {over} (targets {plants.TARGETS})"
 
 
-def test_every_plant_is_measured_and_the_marks_name_real_plants() -> None:
+def test_every_plant_is_measured() -> None:
     assert set(plants.PLANTS) == {"ideal", "lagged", "weak 20 %", "deadband", "curved", "skid"}
-    assert set(ISSUE_42) <= set(plants.PLANTS)
     assert plants.PLANTS["skid"].plant == "ardupilot_skid"
     assert {v.plant for name, v in plants.PLANTS.items() if name != "skid"} == {"wheels"}
 
