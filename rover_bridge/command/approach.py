@@ -14,10 +14,10 @@ the distance of the braking ramp, the distance covered during the lag, and what 
 braking at the full rate they run ahead of what they were asked by wheel_s * a (a first-order lag behind a
 ramp), over the lag. The command brakes at the full rate down to the settle speed (which the limiter then
 takes to zero in one output), so the last term is whole at speed and fades only below it: a rover that
-stopped short still creeps in. The speed asked for is d's inverse at the distance left. In a simulation of
-a first-order wheel of 0, 0.15 and 0.3 s told its lag, an 8 m go-to at 3 m/s stopped 0.001-0.019 m short
-of the point; with that term fading with the curve's own deceleration instead, 0.04 and 0.15 m past it at
-0.15 and 0.3 s (tests/test_navigation.py).
+stopped short still creeps in. The speed asked for is d's inverse at the distance left. In the simulation
+of tests/test_navigation.py (a first-order wheel of 0, 0.15 and 0.3 s, the curve told its lag) an 8 m go-to
+at 3 m/s stopped 0.001-0.019 m short of the point; with the last term fading with the curve's own
+deceleration instead (a v / (v + a lag_s)) it stopped 0.04 and 0.15 m past it at 0.15 and 0.3 s.
 """
 
 from __future__ import annotations
