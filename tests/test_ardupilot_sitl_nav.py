@@ -407,6 +407,48 @@ def test_a_mission_through_the_bridge_against_ardupilot_alone(sides: tuple[Side,
     assert bridged.xtrack_max_m <= alone.xtrack_max_m + 0.3
 
 
+GUIDED = 15
+POSITION_ONLY = 0x0DF8  # SET_POSITION_TARGET: x, y (z) used; velocity, acceleration, yaw ignored
+
+
+def go_to_8_m(side: Side) -> tuple[float, float, float]:
+    """In GUIDED, a target 8 m ahead (BODY_NED) sent once: the time from it to rest (the simulator's position,
+    to 1e-7 deg at 20 Hz, unchanged from then on), the distance from the target at rest and the most the rover
+    went past it along the way, by the simulator's truth."""
+    side.arm()
+    side.set_mode(GUIDED)
+    time.sleep(1.0)
+    sitl = side.sitl
+    yaw = float(sitl.monitor.of("SIMSTATE")[-1].yaw)  # radians clockwise from north
+    start = sitl.truth()
+    un, ue = math.cos(yaw), math.sin(yaw)
+    since = time.monotonic()
+    with side.gcs.lock:
+        side.gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_BODY_NED, POSITION_ONLY,
+                                                             8.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert side.gcs.wait(lambda: math.dist(sitl.truth(), start) > 1.0, 10.0), f"{side.name}: it did not go"
+    assert side.gcs.wait(sitl.stopped, 30.0), f"{side.name}: it did not stop"
+    time.sleep(1.5)
+    samples = [(t, m.lat, m.lng) for t, m in list(sitl.monitor.messages) if t >= since and m.get_type() == "SIMSTATE"]
+    rest_s = max(t for (t, lat, lng), (_, lat0, lng0) in itertools.pairwise(samples[::-1])
+                 if (lat, lng) != (lat0, lng0)) - since
+    along = [(n - start[0]) * un + (e - start[1]) * ue for n, e in sitl.track(since)]
+    end = sitl.truth()
+    error_m = math.dist(end, (start[0] + 8.0 * un, start[1] + 8.0 * ue))
+    side.disarm()
+    return rest_s, error_m, max(along) - 8.0
+
+
+def test_a_brisk_go_to_against_ardupilot_alone(sides: tuple[Side, Side]) -> None:
+    """Issue 42: within 1.2 x ArduPilot alone's time to rest, <= 0.15 m from the target, <= 0.1 m past it."""
+    anchor, through = sides
+    alone, bridged = go_to_8_m(anchor), go_to_8_m(through)
+    FIGURES.append(f"go-to 8 m (at rest s | error m | past m): alone {alone[0]:.2f} | {alone[1]:.3f} | "
+                   f"{alone[2]:+.3f} ; bridge {bridged[0]:.2f} | {bridged[1]:.3f} | {bridged[2]:+.3f}")
+    assert bridged[0] <= 1.2 * alone[0]
+    assert bridged[1] <= 0.15 and bridged[2] <= 0.1
+
+
 def rtl(side: Side) -> float:
     side.arm()
     side.drive_until(lambda: side.from_home_m() >= 11.0, 1.5)
