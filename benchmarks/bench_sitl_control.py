@@ -14,9 +14,8 @@ instance (rover-skid.parm's SERVO1/3_FUNCTION 73/74: its own skid mixer, GUIDED,
 directly; the go-to as a position target) for a side-by-side column. Each run takes about 2 minutes of wall time.
 
 Profile: by default the SITL kit's profile (params/ardupilot-sitl-skid.toml: geometry, limits, outputs, encoders,
-modes, demand) with its [control] section removed, so the speed loop runs on the packaged defaults as a new owner's
-would (the packaged default profile has no [control] either: kp 1.5, ki 15 1/s, reference 0.15 s, filter 10 Hz);
-`--profile PATH` runs another (the shipped one: --profile params/ardupilot-sitl-skid.toml).
+modes, demand) with any [control] section removed, so the speed loop runs on the packaged defaults as a new
+owner's would (the shipped profile sets no loop gains either); `--profile PATH` runs another (a calibrated one).
 
 Rows: overshoot of each step in % of the step, steady error in % (mean of the last 1.5 s of the step), the mean
 forward speed and the yaw-rate error in % of the request in the arc, spin and turn (mean of the last 2.5 s), the
