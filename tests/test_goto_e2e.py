@@ -4,7 +4,6 @@ emulator's ground truth; the targets are sent once each, as a GCS's "go here" is
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import pytest
@@ -12,7 +11,7 @@ from lockstep import Lockstep
 from navrig import BridgeRig, shipped_profile
 
 from rover_bridge.mavlink.dialect import mavlink
-from rover_bridge.params import ControlParams, Profile
+from rover_bridge.params import Profile
 from sitl import VehicleConfig
 
 pytestmark = pytest.mark.e2e
@@ -138,14 +137,10 @@ def trapezoid_s(distance_m: float, cruise_m_s: float, accel: float, decel: float
     return peak / accel + peak / decel
 
 
-@pytest.mark.parametrize("control", ["shipped", "default"])
-def test_an_8_m_go_to_on_the_skid_model_is_brisk_and_stops_on_the_point(control: str) -> None:
-    """Issue 42: the shipped SITL profile on the emulator's rover-skid bridge setup, a target 8 m ahead:
-    up to the cruise speed (3 m/s, WP_SPEED), down the braking curve, at rest on the point. The profile's
-    [control] as shipped, and replaced by the defaults."""
+def test_an_8_m_go_to_on_the_skid_model_is_brisk_and_stops_on_the_point() -> None:
+    """Issue 42: the shipped SITL profile (no loop gains: the defaults) on the emulator's rover-skid bridge setup, a
+    target 8 m ahead: up to the cruise speed (3 m/s, WP_SPEED), down the braking curve, at rest on the point."""
     profile = shipped_profile()
-    if control == "default":
-        profile = dataclasses.replace(profile, control=ControlParams())
     rig = BridgeRig(profile)
     try:
         rig.set_mode(15)
@@ -162,9 +157,11 @@ def test_an_8_m_go_to_on_the_skid_model_is_brisk_and_stops_on_the_point(control:
         end = rig.emu.truth
         error_m = math.hypot(end.x_m - (sx + 8.0 * c), end.y_m - (sy + 8.0 * s))
         ideal_s = trapezoid_s(8.0, 3.0, profile.limits.max_linear_accel_m_s2, profile.limits.max_linear_decel_m_s2)
-        # Measured 4.7 s to rest (|v| < 0.01 m/s, sampled every 0.1 s), 0.04-0.05 m short, against the ideal
-        # 3.47 s: the lag, and the motor's own decay after the last command (time constant 0.29 s).
-        assert at_rest_s <= ideal_s + 1.5, at_rest_s
+        # Measured 5.1 s to rest (|v| < 0.01 m/s, sampled every 0.1 s), 0.05 m short, against the ideal 3.47 s:
+        # the curve brakes for the lag the loop assumes (reference_s, 0.3 s by default) and the motor decays at
+        # its own 0.29 s after the last command. Against ArduPilot alone on the real SITL (its 7.5 s; 1.2 x is
+        # the bound): tests/test_ardupilot_sitl_control.py.
+        assert at_rest_s <= ideal_s + 2.0, at_rest_s
         assert max(along) - 8.0 <= 0.1  # never more than 0.1 m past it
         assert error_m <= 0.15
     finally:
