@@ -1,7 +1,8 @@
 """Wheel speed control on imperfect motors: open loop beside closed loop, the same runs (lockstep).
 
     python benchmarks/bench_control.py            # the table
-    python benchmarks/bench_control.py --patch P  # the same, open loop also with a calibrated profile patch
+    python benchmarks/bench_control.py --patch P  # the same, open and closed loop also with a profile patch
+    python benchmarks/bench_control.py --calibrate  # the patch from `calibrate`'s sequence on the same rover
 
 The emulated rover: left motor 20 % weak, a 40 us ESC deadband, a curved PWM -> speed map
 (speed = command ** 1.5), and, where a case says so, a 15 % load window or a stalled wheel. The whole
@@ -59,6 +60,7 @@ class Rig:
     vehicle: VehicleConfig = IMPERFECT
     scenario: Scenario = field(default_factory=Scenario)
     seed: int = 1
+    step_s: float = STEP_S  # the lockstep's step: how finely the bridge sees the emulator's timing
 
     def __post_init__(self) -> None:
         self.emu = Emulator(self.vehicle, self.scenario, seed=self.seed, record_sent=True)
@@ -85,7 +87,7 @@ class Rig:
         self._to_autopilot(self.core.handle(Incoming(Link.GCS, wired), self.t).out)
 
     def step(self) -> None:
-        self.emu.step(STEP_S)
+        self.emu.step(self.step_s)
         self.t = self.emu.sim_time_s
         log = self.emu.sent_log
         assert log is not None
@@ -266,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         patched = load_profile(args.patch)
         patched = replace(patched, estimator=replace(patched.estimator, stream_rate_hz=20.0))
         modes.append(("open loop + patch", replace(patched, control=replace(patched.control, mode="open_loop"))))
+        modes.append(("closed loop + patch", replace(patched, control=replace(patched.control, mode="closed_loop"))))
     print("vehicle: left motor 20 % weak, 40 us deadband, speed = command^1.5; lockstep, ground truth")
     for name, case in CASES:
         print(f"\n{name}")

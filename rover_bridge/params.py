@@ -219,19 +219,27 @@ class ControlParams:
         "closed_loop", "closed_loop: a per-wheel speed loop (feedforward from the PWM map plus PI on the speed "
         "measured from WHEEL_DISTANCE) between the kinematics and the PWM; open_loop: the PWM map alone.",
         choices=("closed_loop", "open_loop"))
-    kp: float = _p(1.5, "Proportional gain: wheel speed command added per unit of wheel speed error.",
-                   unit="(rad/s)/(rad/s)", lo=0.0, hi=20.0)
-    ki_1_s: float = _p(15.0, "Integral gain: wheel speed command added per second per unit of speed error.",
+    # The defaults assume nothing of the plant (rover_bridge/command/wheel_control.py): no P, a slow integrator.
+    # `rover-bridge calibrate` measures the plant and writes all six by the lambda rule it states.
+    kp: float = _p(0.0, "Driving (the wheels' common speed): wheel speed command added per unit of speed error "
+                   "against the reference model.", unit="(rad/s)/(rad/s)", lo=0.0, hi=20.0)
+    ki_1_s: float = _p(2.0, "Driving: wheel speed command added per second per unit of speed error.",
                        unit="1/s", lo=0.0, hi=200.0)
     reference_s: float = _p(
-        0.15, "The response the loop expects of a wheel (first-order time constant: motor lag, encoder "
-        "interval, filter); the error is taken against the target through this lag, so a ramp does not wind "
-        "the integrator up.", unit="s", lo=0.01, hi=2.0)
+        0.3, "Driving: the response expected of the wheels' common speed to the feedforward (first-order time "
+        "constant: motor lag, the body's inertia); the error is taken against the target through this lag, so "
+        "a ramp does not wind the integrator up.", unit="s", lo=0.01, hi=2.0)
+    turn_kp: float = _p(0.0, "Turning (half the wheels' difference): as kp.", unit="(rad/s)/(rad/s)", lo=0.0, hi=20.0)
+    turn_ki_1_s: float = _p(4.0, "Turning: as ki_1_s.", unit="1/s", lo=0.0, hi=200.0)
+    turn_reference_s: float = _p(
+        0.3, "Turning: as reference_s (a skid rover may turn at once: ArduPilot's SITL model does).",
+        unit="s", lo=0.01, hi=2.0)
     integrator_max_fraction: float = _p(
         0.5, "Largest correction the integrator may hold, as a fraction of the wheel's top speed.",
         lo=0.0, lo_open=True, hi=1.0)
-    speed_filter_hz: float = _p(10.0, "Cut-off of the low-pass filter on the measured wheel speeds.", unit="Hz",
-                                lo=0.5, hi=200.0)
+    speed_window_s: float = _p(
+        0.1, "The measured wheel speeds are the mean over this long of WHEEL_DISTANCE samples (uneven increments "
+        "average out).", unit="s", lo=0.0, hi=1.0)
     encoder_timeout_s: float = _p(
         0.5, "No WHEEL_DISTANCE for this long: the loop falls back to feedforward only (said once) and resumes "
         "when data returns.", unit="s", lo=0.05, hi=10.0)

@@ -10,7 +10,8 @@ The pieces (each says what it copies of ArduPilot and which source files were re
 inputs, overrides, servo outputs), sitl/streams.py (stream groups, SET_MESSAGE_INTERVAL), sitl/params.py,
 sitl/commands.py, sitl/messages.py, sitl/mission.py + sitl/mission_protocol.py, sitl/rover.py (the
 loop, modes, home, fence, GCS failsafe) with sitl/navigation.py, sitl/wpnav.py, sitl/poscontrol.py,
-sitl/scurve.py, sitl/control.py, sitl/motors.py and sitl/smartrtl.py, sitl/extnav.py.
+sitl/scurve.py, sitl/control.py, sitl/motors.py and sitl/smartrtl.py, sitl/extnav.py; sitl/skid.py (the
+ardupilot_skid plant's encoders and WHEEL_DISTANCE, sent from Rover's loop).
 
 Behaviour copied from ArduPilot (read in its source; behaviour only, no code):
 - RC_CHANNELS_OVERRIDE (libraries/GCS_MAVLink/GCS_Common.cpp handle_rc_channels_override):
@@ -76,11 +77,13 @@ from sitl.params import WHEEL_PARAM_PREFIXES, Param, default_params, set_value
 from sitl.physics import PhysicsState, encoder_counts, pwm_to_command
 from sitl.rc import RcServos
 from sitl.rover import Rover
+from sitl.skid import ARDUPILOT_SKID, SkidLoop
 from sitl.streams import GROUP_OF_MESSAGE, HOME_POSITION, STREAM_GROUPS, STREAMABLE, Streams
 
 __all__ = ["MODE_GUIDED", "MODE_HOLD", "MODE_MANUAL", "Autopilot", "ReceivedMessage"]
 
 _P = mavlink
+WHEEL_DISTANCE: int = _P.MAVLINK_MSG_ID_WHEEL_DISTANCE
 
 
 @dataclass(frozen=True)
@@ -93,7 +96,7 @@ class Autopilot:
     """The emulated flight controller's MAVLink-facing logic (the pieces are listed in the module doc)."""
 
     def __init__(
-        self, vehicle: VehicleConfig, mav: mavlink.MAVLink, system_id: int = 1, component_id: int = 1
+        self, vehicle: VehicleConfig, mav: mavlink.MAVLink, system_id: int = 1, component_id: int = 1, seed: int = 0
     ) -> None:
         self.vehicle = vehicle
         self.mav = mav  # only used to build message objects (encode); packing is elsewhere
@@ -119,6 +122,9 @@ class Autopilot:
         self._ahrs_yaw_rad = 0.0
         self._physics = PhysicsState()  # the last state update() saw
         self._boot_vehicle()
+        # ArduPilot SITL's skid plant: its encoders are read, and WHEEL_DISTANCE sent, in Rover's loop (sitl/skid.py).
+        self.skid_loop = SkidLoop(self.param, self.rover.loop_period_us, vehicle.loop_late_rate, seed) \
+            if vehicle.plant == ARDUPILOT_SKID else None
 
     def _boot_vehicle(self) -> None:
         """What a boot starts afresh: the vehicle's loop, modes, home, fence, mission cursor and transfers."""
@@ -269,6 +275,8 @@ class Autopilot:
 
     def wheel_distances_m(self, physics: PhysicsState) -> tuple[float, float]:
         """(index 0, index 1) cumulative distances since boot, as WHEEL_DISTANCE reports them."""
+        if self.skid_loop is not None:
+            return self.skid_loop.distances_m()
         cpr = self.vehicle.encoder_cpr
         counts = {
             "left": encoder_counts(physics.left_encoder_angle_rad, cpr) - self._encoder_offset[0],
@@ -320,6 +328,9 @@ class Autopilot:
         text = self.extnav.update(now_us)
         if text is not None and self.param("VISO_TYPE") == 1:
             self.send_text(_P.MAV_SEVERITY_INFO, text)
+        enc = self.skid_loop
+        if enc is not None and enc.update(now_us, physics, self.interval_us(WHEEL_DISTANCE)):
+            self.outbox += messages.build_all(self, WHEEL_DISTANCE, enc.stamp_us, physics)
         rover = self.rover
         rover.update(now_us, self.boot_us, self.nav_state(physics), self.armed, self.rc.have_skid_steering())
         if rover.disarm_requested:
@@ -346,8 +357,8 @@ class Autopilot:
         extra = (HOME_POSITION,) if HOME_POSITION in self.streams.intervals_us else ()
         for mid in (*STREAMABLE, *extra):
             interval = self.interval_us(mid)
-            if interval is None:
-                continue
+            if interval is None or (mid == WHEEL_DISTANCE and self.skid_loop is not None):
+                continue  # off, or sent from the loop (the skid plant)
             if mid == _P.MAVLINK_MSG_ID_LOCAL_POSITION_NED and not self.has_position():
                 continue  # ArduPilot sends no local position before its EKF has one
             if self.streams.take_due(mid, interval, now_us, self.boot_us):
@@ -374,6 +385,8 @@ class Autopilot:
         self.extnav = ExtNavConsumer(self._extnav_settings())  # a new EKF: no position until ODOMETRY again
         self.mission.reset_cursor()
         self._boot_vehicle()
+        if self.skid_loop is not None:
+            self.skid_loop.reset(now_us, self.rover.loop_period_us)
         cpr = self.vehicle.encoder_cpr
         self._encoder_offset = (
             encoder_counts(physics.left_encoder_angle_rad, cpr),

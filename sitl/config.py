@@ -27,6 +27,9 @@ class ConfigError(ValueError):
 
 
 WHEEL_ORDERS = ("left_right", "right_left")
+# "wheels": each wheel's motor lags on its own (both the common and the differential mode lag);
+# "ardupilot_skid": ArduPilot SITL's rover-skid body, encoders and their timing (sitl/skid.py).
+PLANTS = ("wheels", "ardupilot_skid")
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,9 @@ class VehicleConfig:
     right_motor_gain: float = 1.0
     motor_curve_exponent: float = 1.0
     battery_sag_per_min: float = 0.0
+    # The body's model (PLANTS) and, for "ardupilot_skid", the fraction of Rover loops that start 1 ms late.
+    plant: str = "wheels"
+    loop_late_rate: float = 0.0
     # Wiring: which servo output drives which wheel, and the boot SERVOn_FUNCTION values.
     left_servo: int = 1
     right_servo: int = 3
@@ -167,6 +173,13 @@ class VehicleConfig:
             out.append(
                 f"wheel_distance_order must be one of {WHEEL_ORDERS}, got {self.wheel_distance_order!r}"
             )
+        if self.plant not in PLANTS:
+            out.append(f"plant must be one of {PLANTS}, got {self.plant!r}")
+        elif self.plant == "ardupilot_skid" and self.wheel_distance_order != "right_left":
+            out.append("plant ardupilot_skid reports the right wheel first (SITL's encoder instance 0): "
+                       "set wheel_distance_order = \"right_left\"")
+        if not 0.0 <= self.loop_late_rate <= 1.0:
+            out.append(f"loop_late_rate must be in [0, 1], got {self.loop_late_rate}")
         if self.gyro_noise_rad_s < 0.0:
             out.append(f"gyro_noise_rad_s must be >= 0, got {self.gyro_noise_rad_s}")
         if not 1 <= self.gcs_sysid <= 255:

@@ -4,7 +4,8 @@ Lockstep: ``step(dt_s)`` (1) fires due scenario events, (2) reads every datagram
 arrived (non-blocking) and hands the due ones, through the inbound fault model, to the autopilot
 (bytes of a stream link, TCP, are handed on one step later, and lost if the client closes before
 then, as ArduPilot's SITL serial port does), (3) advances physics by ``dt_s`` of simulated time in
-substeps of at most ``vehicle.physics_dt_s``, recomputing the servo outputs before each substep, and
+substeps of at most ``vehicle.physics_dt_s`` (and split at Rover's loop instants for the skid plant, whose
+encoders are read and motors updated only there: sitl/skid.py), recomputing the servo outputs before each substep, and
 (4) sends the replies and every stream message that is due, through the outbound fault model.
 Simulated time is kept in integer microseconds, so a run is a pure function of the seed and the
 input sequence.
@@ -19,7 +20,7 @@ import threading
 import time
 from dataclasses import replace
 
-from sitl import physics
+from sitl import physics, skid
 from sitl.autopilot import Autopilot, ReceivedMessage
 from sitl.config import VehicleConfig
 from sitl.endpoint import Endpoint
@@ -103,7 +104,8 @@ class Emulator:
         self._mav_out = mavlink.MAVLink(self._collector, srcSystem=system_id, srcComponent=component_id)
         self._mav_in = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self._mav_in.robust_parsing = True  # corrupted bytes become counted bad data, not exceptions
-        self.autopilot = Autopilot(self.vehicle, self._mav_out, system_id, component_id)
+        self.autopilot = Autopilot(self.vehicle, self._mav_out, system_id, component_id, seed=seed)
+        self._physics_step = skid.step if self.vehicle.plant == skid.ARDUPILOT_SKID else physics.step
         self._world = _World(self.vehicle, self.scenario, seed)
         self._link_in = FaultyLink(self.faults.inbound, seed=hash_seed(seed, "in"))
         self._link_out = FaultyLink(self.faults.outbound, seed=hash_seed(seed, "out"))
@@ -164,10 +166,14 @@ class Emulator:
         t = now
         end = now + dt_us
         while t < end:
-            sub = min(sub_max_us, end - t)
             self.autopilot.update(t, self._phys)
-            inputs = self._world.inputs(self._phys, t, *self.autopilot.wheel_commands())
-            self._phys = physics.step(self._phys, inputs, sub / 1e6, self.vehicle)
+            enc = self.autopilot.skid_loop  # the skid plant's encoders are read at the loop's own instants
+            sub = min(sub_max_us, end - t, enc.next_loop_us - t if enc is not None and enc.next_loop_us > t else end)
+            commands = self.autopilot.wheel_commands()
+            if enc is not None and not self.autopilot.rebooting:
+                commands = enc.motors(commands)  # the output of Rover's last loop
+            inputs = self._world.inputs(self._phys, t, *commands)
+            self._phys = self._physics_step(self._phys, inputs, sub / 1e6, self.vehicle)
             t += sub
         self._now_us = end
         self._phys = replace(self._phys, time_s=end / 1e6)  # exact, not a sum of floats

@@ -11,18 +11,16 @@ figures). Two SITLs run side by side, both rover-skid with rover.parm + rover-sk
 Each keeps a monitor (250/191) on SERIAL1 that reads the simulator's truth (SIMSTATE, 20 Hz), the outputs
 (SERVO_OUTPUT_RAW, 40 Hz), the mode and the texts. Scenarios run in file order on the same two SITLs; each
 starts by arming (ArduPilot sets home and clears SmartRTL's path there) and ends disarmed.
+The SITLs, their links and the bridge process come from tests/ardupilot_rig.py (shared with
+benchmarks/bench_sitl_control.py).
 """
 
 from __future__ import annotations
 
-import collections
 import itertools
 import math
 import os
-import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -30,10 +28,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from lockstep import free_udp_port
+from ardupilot_rig import EARTH_RADIUS_M, PARM, PROFILE, Bridge, Link, Sitl
 from navmetrics import Point, distance_to_path_m, route_figures
 
-from rover_bridge.mavlink.dialect import mavlink, mavutil
+from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import load_profile
 
 BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
@@ -42,229 +40,16 @@ pytestmark = [
     pytest.mark.skipif(not BINARY, reason="ROVER_BRIDGE_ARDUROVER does not name an ardurover binary"),
 ]
 
-REPO = Path(__file__).resolve().parents[1]
-PROFILE = REPO / "params" / "ardupilot-sitl-skid.toml"
-PARM = REPO / "deploy" / "ardupilot-rover.parm"
 ANCHOR_INSTANCE, BRIDGE_INSTANCE = 5, 6  # ports 5760 + 10 * I (SERIAL0), + 2 (SERIAL1)
 MANUAL, HOLD, AUTO, RTL, SMART_RTL = 0, 4, 10, 11, 12
 WAYPOINTS: list[Point] = [(10.0, 0.0), (10.0, 10.0), (0.0, 10.0)]
 TRIM = 1500
-EARTH_RADIUS_M = 6378137.0
 BODY_VELOCITY_MASK = 0b0000_0101_1100_0111
 COMMON = "ARMING_CHECK 0\nSERIAL1_PROTOCOL 2\n"
 ANCHOR_PARAMS = COMMON  # rover-skid.parm's SERVO1/3 = 73/74
 # The bridge profile's wheel encoders (SITL's, with the profile's effective track): see test_ardupilot_sitl.py.
 BRIDGE_PARAMS = COMMON + "WENC_TYPE 10\nWENC2_TYPE 10\nWENC_POS_Y 0.8185\nWENC2_POS_Y -0.8185\n"
 FIGURES: list[str] = []  # printed at the end of the module (pytest -s)
-
-
-def _default_params() -> Path:
-    given = os.environ.get("ROVER_BRIDGE_ARDUPILOT_PARAMS")
-    return Path(given) if given else Path(BINARY).resolve().parents[3] / "Tools" / "autotest" / "default_params"
-
-
-class Link:
-    """A pymavlink connection read by a thread: every message kept (bounded), a heartbeat sent at 1 Hz while
-    `beating`, and `each` (if set) called every 0.1 s (a GCS's velocity requests or sticks)."""
-
-    def __init__(self, url: str, sysid: int, compid: int, beating: bool = True) -> None:
-        self.conn: Any = mavutil.mavlink_connection(url, source_system=sysid, source_component=compid,
-                                                    dialect="ardupilotmega")
-        self.beating = beating
-        self.each: Callable[[], None] | None = None
-        self.messages: collections.deque[tuple[float, Any]] = collections.deque(maxlen=200_000)
-        self.lock = threading.Lock()
-        self.alive = True
-        self._threads = [threading.Thread(target=self._rx, daemon=True), threading.Thread(target=self._tx, daemon=True)]
-        for th in self._threads:
-            th.start()
-
-    def _rx(self) -> None:
-        while self.alive:
-            try:
-                m = self.conn.recv_match(blocking=True, timeout=0.2)
-            except OSError:
-                time.sleep(0.05)
-                continue
-            if m is not None and m.get_type() != "BAD_DATA":
-                self.messages.append((time.monotonic(), m))
-
-    def _tx(self) -> None:
-        n = 0
-        while self.alive:
-            with self.lock:
-                if self.beating and n % 10 == 0:
-                    self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-                if self.each is not None:
-                    self.each()
-            n += 1
-            time.sleep(0.1)
-
-    def of(self, kind: str, since: float = 0.0) -> list[Any]:
-        return [m for t, m in list(self.messages) if t >= since and m.get_type() == kind]
-
-    def texts(self, since: float = 0.0) -> list[str]:
-        return [m.text for m in self.of("STATUSTEXT", since)]
-
-    def wait(self, done: Callable[[], bool], timeout_s: float) -> bool:
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            if done():
-                return True
-            time.sleep(0.02)
-        return done()
-
-    def command(self, command: int, *params: float) -> int | None:
-        p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
-        since = time.monotonic()
-        with self.lock:
-            self.conn.mav.command_long_send(1, 1, command, 0, *p)
-        ok = self.wait(lambda: any(m.command == command for m in self.of("COMMAND_ACK", since)), 3.0)
-        return [m.result for m in self.of("COMMAND_ACK", since) if m.command == command][-1] if ok else None
-
-    def set_param(self, name: str, value: float) -> None:
-        since = time.monotonic()
-        with self.lock:
-            self.conn.mav.param_set_send(1, 1, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32)
-        assert self.wait(lambda: any(m.param_id == name for m in self.of("PARAM_VALUE", since)), 5.0), name
-
-    def get_param(self, name: str) -> float:
-        since = time.monotonic()
-        with self.lock:
-            self.conn.mav.param_request_read_send(1, 1, name.encode(), -1)
-        assert self.wait(lambda: any(m.param_id == name for m in self.of("PARAM_VALUE", since)), 5.0), name
-        return float([m for m in self.of("PARAM_VALUE", since) if m.param_id == name][-1].param_value)
-
-    def close(self) -> None:
-        self.alive = False
-        for th in self._threads:
-            th.join(1.0)
-        self.conn.close()
-
-
-class Sitl:
-    """One ardurover and its monitor on SERIAL1: truth (north, east from where it booted), mode, outputs."""
-
-    def __init__(self, instance: int, extra: str, workdir: Path, parm_files: tuple[Path, ...] = ()) -> None:
-        self.instance = instance
-        self.serial0 = 5760 + 10 * instance
-        workdir.mkdir(parents=True, exist_ok=True)
-        (workdir / "extra.parm").write_text(extra)
-        params = _default_params()
-        defaults = ",".join(str(p) for p in (params / "rover.parm", params / "rover-skid.parm", *parm_files,
-                                             workdir / "extra.parm"))
-        self.log = open(workdir / "ardurover.log", "wb")  # noqa: SIM115
-        self.proc = subprocess.Popen([BINARY, "--model", "rover-skid", "--defaults", defaults, "-I", str(instance),
-                                      "--serial0", "tcp:0", "-w"], cwd=workdir, stdout=self.log,
-                                     stderr=subprocess.STDOUT)
-        self.monitor = self._connect(self.serial0 + 2, 250, 191)
-        self.monitor.beating = False  # not the GCS: its heartbeat is no GCS for ArduPilot's failsafe anyway
-        self.origin_deg: tuple[float, float] | None = None
-        for _ in range(3):
-            self.monitor.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_SIMSTATE, 50_000)
-            self.monitor.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, 25_000)
-            if self.monitor.wait(lambda: len(self.monitor.of("SIMSTATE")) > 5, 2.0):
-                break
-        last = self.monitor.of("SIMSTATE")[-1]
-        self.origin_deg = (last.lat * 1e-7, last.lng * 1e-7)
-
-    @staticmethod
-    def _connect(port: int, sysid: int, compid: int) -> Link:
-        end = time.monotonic() + 90.0
-        while True:
-            try:
-                return Link(f"tcp:127.0.0.1:{port}", sysid, compid)
-            except OSError:
-                if time.monotonic() > end:
-                    raise
-                time.sleep(0.5)
-
-    def gcs_on_serial0(self) -> Link:
-        return self._connect(self.serial0, 255, 190)
-
-    def truth(self) -> Point:
-        m = self.monitor.of("SIMSTATE", time.monotonic() - 1.0)[-1]
-        assert self.origin_deg is not None
-        lat0, lon0 = self.origin_deg
-        return (math.radians(m.lat * 1e-7 - lat0) * EARTH_RADIUS_M,
-                math.radians(m.lng * 1e-7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
-
-    def track(self, since: float, until: float = math.inf) -> list[Point]:
-        assert self.origin_deg is not None
-        lat0, lon0 = self.origin_deg
-        return [(math.radians(m.lat * 1e-7 - lat0) * EARTH_RADIUS_M,
-                 math.radians(m.lng * 1e-7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
-                for t, m in list(self.monitor.messages) if since <= t <= until and m.get_type() == "SIMSTATE"]
-
-    def mode(self) -> int | None:
-        beats = [m for m in self.monitor.of("HEARTBEAT", time.monotonic() - 2.0) if m.get_srcSystem() == 1
-                 and m.get_srcComponent() == 1]
-        return int(beats[-1].custom_mode) if beats else None
-
-    def _speed_from_track(self) -> float:
-        now = time.monotonic()
-        pts = [(t, m) for t, m in list(self.monitor.messages) if t >= now - 0.5 and m.get_type() == "SIMSTATE"]
-        if len(pts) < 2:
-            return math.inf
-        (t0, a), (t1, b) = pts[0], pts[-1]
-        d = math.hypot((b.lat - a.lat) * 1e-7 * 111_320.0,
-                       (b.lng - a.lng) * 1e-7 * 111_320.0 * math.cos(math.radians(a.lat * 1e-7)))
-        return d / max(t1 - t0, 1e-3)
-
-    def stopped(self) -> bool:
-        return self._speed_from_track() < 0.05
-
-    def home_here(self) -> None:
-        """Truth coordinates from here on (ArduPilot sets home at arming: call it right after arming)."""
-        m = self.monitor.of("SIMSTATE")[-1]
-        self.origin_deg = (m.lat * 1e-7, m.lng * 1e-7)
-
-    def lat_lon_e7(self, north_m: float, east_m: float) -> tuple[int, int]:
-        assert self.origin_deg is not None
-        lat0, lon0 = self.origin_deg
-        return (round((lat0 + math.degrees(north_m / EARTH_RADIUS_M)) * 1e7),
-                round((lon0 + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))) * 1e7))
-
-    def close(self) -> None:
-        self.monitor.close()
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self.log.close()
-
-
-class Bridge:
-    """`rover-bridge run` on the SITL's SERIAL0, a ground station on its UDP port."""
-
-    def __init__(self, sitl: Sitl, workdir: Path, profile: Path = PROFILE, autopilot: str | None = None) -> None:
-        port = free_udp_port()
-        self.log_path = workdir / "bridge.log"
-        with open(self.log_path, "ab") as log:
-            self.proc = subprocess.Popen([sys.executable, "-m", "rover_bridge", "-v", "run", "--params", str(profile),
-                                          "--autopilot", autopilot or f"tcp:127.0.0.1:{sitl.serial0}",
-                                          "--gcs", f"udpin:127.0.0.1:{port}"], cwd=REPO, stdout=log,
-                                         stderr=subprocess.STDOUT)
-        end = time.monotonic() + 30.0
-        while b"rover-bridge running" not in self.log_path.read_bytes():
-            assert self.proc.poll() is None and time.monotonic() < end, self.log_path.read_text()[-2000:]
-            time.sleep(0.05)
-        self.gcs = Link(f"udpout:127.0.0.1:{port}", 255, 190)
-
-    def stop(self) -> float:
-        """SIGTERM; the time it was sent."""
-        t0 = time.monotonic()
-        self.proc.send_signal(signal.SIGTERM)
-        assert self.proc.wait(10.0) == 0
-        return t0
-
-    def close(self) -> None:
-        self.gcs.close()
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
 
 
 class Side:
@@ -358,8 +143,8 @@ class Side:
 @pytest.fixture(scope="module")
 def sides(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Side, Side]]:
     work = tmp_path_factory.mktemp("sitl_nav")
-    anchor_sitl = Sitl(ANCHOR_INSTANCE, ANCHOR_PARAMS, work / "anchor")
-    bridge_sitl = Sitl(BRIDGE_INSTANCE, BRIDGE_PARAMS, work / "bridge", (PARM,))
+    anchor_sitl = Sitl(BINARY, ANCHOR_INSTANCE, ANCHOR_PARAMS, work / "anchor")
+    bridge_sitl = Sitl(BINARY, BRIDGE_INSTANCE, BRIDGE_PARAMS, work / "bridge", (PARM,))
     anchor_gcs = anchor_sitl.gcs_on_serial0()
     bridge = Bridge(bridge_sitl, work)
     anchor, through = Side("anchor", anchor_sitl, anchor_gcs, None), Side("bridge", bridge_sitl, bridge.gcs, bridge)
@@ -405,6 +190,48 @@ def test_a_mission_through_the_bridge_against_ardupilot_alone(sides: tuple[Side,
     assert max(bridged.closest_m) <= 0.5
     assert bridged.time_s <= 1.1 * alone.time_s
     assert bridged.xtrack_max_m <= alone.xtrack_max_m + 0.3
+
+
+GUIDED = 15
+POSITION_ONLY = 0x0DF8  # SET_POSITION_TARGET: x, y (z) used; velocity, acceleration, yaw ignored
+
+
+def go_to_8_m(side: Side) -> tuple[float, float, float]:
+    """In GUIDED, a target 8 m ahead (BODY_NED) sent once: the time from it to rest (the simulator's position,
+    to 1e-7 deg at 20 Hz, unchanged from then on), the distance from the target at rest and the most the rover
+    went past it along the way, by the simulator's truth."""
+    side.arm()
+    side.set_mode(GUIDED)
+    time.sleep(1.0)
+    sitl = side.sitl
+    yaw = float(sitl.monitor.of("SIMSTATE")[-1].yaw)  # radians clockwise from north
+    start = sitl.truth()
+    un, ue = math.cos(yaw), math.sin(yaw)
+    since = time.monotonic()
+    with side.gcs.lock:
+        side.gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_BODY_NED, POSITION_ONLY,
+                                                             8.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert side.gcs.wait(lambda: math.dist(sitl.truth(), start) > 1.0, 10.0), f"{side.name}: it did not go"
+    assert side.gcs.wait(sitl.stopped, 30.0), f"{side.name}: it did not stop"
+    time.sleep(1.5)
+    samples = [(t, m.lat, m.lng) for t, m in list(sitl.monitor.messages) if t >= since and m.get_type() == "SIMSTATE"]
+    rest_s = max(t for (t, lat, lng), (_, lat0, lng0) in itertools.pairwise(samples[::-1])
+                 if (lat, lng) != (lat0, lng0)) - since
+    along = [(n - start[0]) * un + (e - start[1]) * ue for n, e in sitl.track(since)]
+    end = sitl.truth()
+    error_m = math.dist(end, (start[0] + 8.0 * un, start[1] + 8.0 * ue))
+    side.disarm()
+    return rest_s, error_m, max(along) - 8.0
+
+
+def test_a_brisk_go_to_against_ardupilot_alone(sides: tuple[Side, Side]) -> None:
+    """Issue 42: within 1.2 x ArduPilot alone's time to rest, <= 0.15 m from the target, <= 0.1 m past it."""
+    anchor, through = sides
+    alone, bridged = go_to_8_m(anchor), go_to_8_m(through)
+    FIGURES.append(f"go-to 8 m (at rest s | error m | past m): alone {alone[0]:.2f} | {alone[1]:.3f} | "
+                   f"{alone[2]:+.3f} ; bridge {bridged[0]:.2f} | {bridged[1]:.3f} | {bridged[2]:+.3f}")
+    assert bridged[0] <= 1.2 * alone[0]
+    assert bridged[1] <= 0.15 and bridged[2] <= 0.1
 
 
 def rtl(side: Side) -> float:

@@ -8,6 +8,7 @@ import math
 
 import pytest
 from lockstep import Lockstep
+from navrig import BridgeRig, shipped_profile
 
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import Profile
@@ -125,3 +126,43 @@ def test_ground_station_silence_stops_a_rover_driving_itself() -> None:
         assert ls.t_s > last_heartbeat + Profile().navigation.gcs_timeout_s
     finally:
         ls.close()
+
+
+def trapezoid_s(distance_m: float, cruise_m_s: float, accel: float, decel: float) -> float:
+    """The least time from rest to rest over `distance_m` within a speed, an acceleration, a deceleration."""
+    ramps_m = cruise_m_s ** 2 / (2.0 * accel) + cruise_m_s ** 2 / (2.0 * decel)
+    if ramps_m <= distance_m:
+        return cruise_m_s / accel + cruise_m_s / decel + (distance_m - ramps_m) / cruise_m_s
+    peak = math.sqrt(2.0 * distance_m * accel * decel / (accel + decel))
+    return peak / accel + peak / decel
+
+
+def test_an_8_m_go_to_on_the_skid_model_is_brisk_and_stops_on_the_point() -> None:
+    """Issue 42: the shipped SITL profile (no loop gains: the defaults) on the emulator's rover-skid bridge setup, a
+    target 8 m ahead: up to the cruise speed (3 m/s, WP_SPEED), down the braking curve, at rest on the point."""
+    profile = shipped_profile()
+    rig = BridgeRig(profile)
+    try:
+        rig.set_mode(15)
+        rig.run(1.0)
+        assert rig.emu.mode == 15
+        truth = rig.emu.truth
+        sx, sy, c, s = truth.x_m, truth.y_m, math.cos(truth.yaw_rad), math.sin(truth.yaw_rad)
+        rig.ls.gcs.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_BODY_NED, POS, 8.0, 0.0, 0,
+                                                          0, 0, 0, 0, 0, 0, 0, 0)
+        t0, start = rig.ls.t_s, len(rig.track)
+        assert rig.run_until(lambda: bool(rig.ls.view.of("MISSION_ITEM_REACHED")) and rig.stopped(), 15.0)
+        at_rest_s = rig.ls.t_s - t0
+        along = [(x - sx) * c + (y - sy) * s for x, y in rig.track[start:]]
+        end = rig.emu.truth
+        error_m = math.hypot(end.x_m - (sx + 8.0 * c), end.y_m - (sy + 8.0 * s))
+        ideal_s = trapezoid_s(8.0, 3.0, profile.limits.max_linear_accel_m_s2, profile.limits.max_linear_decel_m_s2)
+        # Measured 5.1 s to rest (|v| < 0.01 m/s, sampled every 0.1 s), 0.05 m short, against the ideal 3.47 s:
+        # the curve brakes for the lag the loop assumes (reference_s, 0.3 s by default) and the motor decays at
+        # its own 0.29 s after the last command. Against ArduPilot alone on the real SITL (its 7.5 s; 1.2 x is
+        # the bound): tests/test_ardupilot_sitl_control.py.
+        assert at_rest_s <= ideal_s + 2.0, at_rest_s
+        assert max(along) - 8.0 <= 0.1  # never more than 0.1 m past it
+        assert error_m <= 0.15
+    finally:
+        rig.close()

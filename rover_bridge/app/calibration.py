@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from rover_bridge.app.loop_tuning import EncoderTiming, LoopTuning, Response, fit_step, mean_response
 from rover_bridge.command.outputs import SpeedCurve, WheelPwm
 from rover_bridge.kinematics import MeasuredWheels
 from rover_bridge.params import Profile
@@ -81,6 +82,7 @@ class CalibrationResult:
     radius_ratio: float  # right / left effective radius
     left_radius_m: float
     right_radius_m: float
+    tuning: LoopTuning | None = None  # the loop's gains from the runs' responses (rover_bridge.app.loop_tuning)
 
     def patch_toml(self, header: str = "") -> str:
         """A profile patch the loader accepts: copy these keys into your profile."""
@@ -97,6 +99,8 @@ class CalibrationResult:
             f"right_curve_pwm_us = {floats(self.right.pwm_us, 1)}",
             f"right_curve_rad_s = {floats(self.right.speed_rad_s, 3)}",
         ]
+        if self.tuning is not None:
+            lines += self.tuning.patch_lines()
         return "\n".join(lines) + "\n"
 
 
@@ -141,6 +145,10 @@ class Calibration:
         self.index = -1
         self._step_start_s = 0.0
         self.windows: dict[int, Window] = {}
+        # Each run's response from its start, as the loop would see it: (arrival time, common, turn) speeds.
+        self.traces: dict[int, list[tuple[float, float, float]]] = {}
+        self._starts_s: dict[int, float] = {}  # when each step's PWM went out
+        self.stamps_s: list[float] = []  # every wheel sample's own stamp (the encoder's interval and jitter)
         self.error: str | None = None
         self.done = False
         self.result: CalibrationResult | None = None
@@ -163,8 +171,13 @@ class Calibration:
     # ------------------------------------------------------------------ inputs
     def sample(self, wheels: MeasuredWheels, gyro_ccw_rad_s: float | None, now_s: float) -> None:
         step = self.step
+        self.stamps_s.append(wheels.stamp_s)
         if step is None or step.kind == "settle":
             return
+        s = wheels.speeds
+        if step.kind in ("straight", "spin"):
+            self.traces.setdefault(self.index, []).append(
+                (now_s, 0.5 * (s.left_rad_s + s.right_rad_s), 0.5 * (s.right_rad_s - s.left_rad_s)))
         window_s = MEASURE_S if step.kind == "wheel" else RUN_MEASURE_S
         if now_s < self._step_start_s + step.duration_s - window_s:
             return
@@ -187,6 +200,7 @@ class Calibration:
                 return None
             self.index += 1
             self._step_start_s = now_s
+            self._starts_s[self.index] = now_s
             if self.index == self._runs_from and self._curves is None:
                 self._curves = (self._wheel_result("left"), self._wheel_result("right"))
                 if self.error is not None:
@@ -300,7 +314,19 @@ class Calibration:
                 q_values.append(num / den)
         q = sum(q_values) / len(q_values) if q_values else 1.0
         left, right = self._curves
-        return CalibrationResult(left, right, track, q, *radii_for_ratio(r_nom, q))
+        return CalibrationResult(left, right, track, q, *radii_for_ratio(r_nom, q), self._tuning())
+
+    def _tuning(self) -> LoopTuning | None:
+        """Each motion's response to its runs (both directions), the encoder's timing, and the gains."""
+        fits: dict[str, list[Response | None]] = {"straight": [], "spin": []}
+        for i, step in enumerate(self.steps):
+            trace = self.traces.get(i)
+            if trace and step.kind in fits:
+                column = 1 if step.kind == "straight" else 2
+                start = self._starts_s.get(i, trace[0][0])
+                fits[step.kind].append(fit_step([r[0] for r in trace], [r[column] for r in trace], start))
+        return LoopTuning.identify(mean_response(fits["straight"]), mean_response(fits["spin"]),
+                                   EncoderTiming.from_stamps(self.stamps_s), self.profile.control.speed_window_s)
 
 
 def _zero_crossing(a: tuple[float, float], b: tuple[float, float], lo: float, hi: float) -> float:

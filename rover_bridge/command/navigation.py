@@ -20,10 +20,13 @@ The controller, every output (time is the caller's): far off the target's bearin
 turn_in_place_deg) it turns in place, at a rate that stops the turn at the bearing within the angular
 deceleration limit; otherwise it drives, steering by pure pursuit on the leg (start -> target: a
 look-ahead point along the leg, lookahead_m or more with speed, so it converges back onto the line),
-its speed the smaller of the cruise speed and the speed from which it can still stop at the target
-at half the deceleration limit, scaled by the cosine of the heading error; inside the arrival radius it
-stops, then turns to the final yaw if one was given. Everything it asks for still goes through the
-limiter, the kinematics, the desaturation, the wheel speed loop and every safety path.
+its speed the smaller of the cruise speed and the braking curve's (rover_bridge.command.approach: the
+fastest speed from which it still stops on the target at the deceleration limit, after the lag of the
+outputs and the wheels), scaled by the cosine of the heading error; the limiter ramps the speed up at the
+acceleration limit. Inside the arrival radius it stops steering and closes the rest along its heading on
+the same curve; the target is reached once that curve asks for no more than the limiter takes away in one
+output (nearly stopped), then it turns to the final yaw if one was given. Everything it asks for still
+goes through the limiter, the kinematics, the desaturation, the wheel speed loop and every safety path.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
+from rover_bridge.command.approach import StopProfile
 from rover_bridge.command.targets import GlobalTarget, LocalTarget, Target
 from rover_bridge.frames import LocalAnchor, NedPose, yaw_frd_from_yaw_flu
 from rover_bridge.kinematics import Twist2D
@@ -41,7 +45,6 @@ from rover_bridge.params import LimitsParams, NavigationParams
 
 EARTH_RADIUS_M = 6378137.0
 LOCAL_POSITION_MAX_AGE_S = 2.0  # a LOCAL_POSITION_NED older than this (autopilot time) does not anchor
-STOP_DECEL_FRACTION = 0.5  # of the deceleration limit: margin for the wheels' own lag
 LOOKAHEAD_S = 1.0  # the look-ahead grows by this many seconds of the speed
 # The frame's rotation from the track (fit_track): over the last minute of LOCAL_POSITION_NED fixes, used
 # when its uncertainty is under half a degree (a rover that has moved a metre or two on a good fix);
@@ -231,27 +234,29 @@ def resolve(target: Target, source: PoseSource, now_s: float, params: Navigation
 
 
 class GotoController:
-    """Turn in place, regulated pure pursuit, a stop inside the radius, the final yaw (module docstring).
+    """Turn in place, regulated pure pursuit on a braking curve, a stop inside the radius, the final yaw
+    (module docstring).
 
     One instance follows one target at a time (`reset` for a new one): it remembers whether it is turning
     in place (hysteresis: it turns until the heading error is below yaw_tolerance_deg, then drives, so it
-    does not start each leg on an arc) and whether it has arrived (inside the radius once is arrived: it
-    does not chase the point again because the stop drifted).
+    does not start each leg on an arc), whether it is inside the radius (inside once is inside: it does
+    not chase the point again, nor turn back to it, because the stop drifted) and whether it has stopped.
     """
 
-    def __init__(self, params: NavigationParams, limits: LimitsParams) -> None:
+    def __init__(self, params: NavigationParams, limits: LimitsParams, stop: StopProfile) -> None:
         self.radius_m = params.arrival_radius_m
         self.turn_in_place_rad = math.radians(params.turn_in_place_deg)
         self.lookahead_m = params.lookahead_m
         self.yaw_tolerance_rad = math.radians(params.yaw_tolerance_deg)
         self.max_omega = limits.max_angular_rad_s
         self.alpha = limits.max_angular_accel_rad_s2
-        self.stop_decel = STOP_DECEL_FRACTION * limits.max_linear_decel_m_s2
-        self.arrived = False
+        self.stop = stop
+        self.arrived = False  # inside the radius
+        self.stopped = False  # and the curve asks for (nearly) nothing more
         self.turning = False
 
     def reset(self) -> None:
-        self.arrived = self.turning = False
+        self.arrived = self.stopped = self.turning = False
 
     def turn_rate(self, error_rad: float) -> float:
         """CCW rate toward a heading error, slowing so that the turn stops on it within the angular limit:
@@ -267,7 +272,7 @@ class GotoController:
         cross = 0.0 if leg < 1e-6 else ((pose.x_m - t.start_x_m) * ly - (pose.y_m - t.start_y_m) * lx) / leg
         bearing_cw = math.remainder(t.anchor.rotation_cw_rad + yaw_frd_from_yaw_flu(math.atan2(dy, dx)),
                                     2.0 * math.pi)
-        phase = ("turn" if self.turning else "drive") if not self.arrived else "yaw"
+        phase = "yaw" if self.stopped else "turn" if self.turning else "drive"
         return NavStatus(math.hypot(dx, dy), bearing_cw, cross, phase)
 
     def twist(self, pose: Pose2D, t: NavTarget) -> tuple[Twist2D, NavStatus]:
@@ -278,7 +283,16 @@ class GotoController:
             self.arrived = True
         status = self.status(pose, t)
         done = NavStatus(status.distance_m, status.bearing_cw_rad, status.crosstrack_m, "done")
-        if self.arrived:
+        if self.arrived and not self.stopped:
+            # What is left along the heading, on the same curve, no steering: a point a few centimetres
+            # aside is not chased (it would swing the heading), one just passed is not turned back to.
+            along = dx * math.cos(pose.yaw_rad) + dy * math.sin(pose.yaw_rad)
+            speed = min(t.speed_m_s, self.stop.speed_m_s(along))
+            if speed > self.stop.settle_m_s:
+                return Twist2D(speed, 0.0), status
+            self.stopped = True
+            status = self.status(pose, t)
+        if self.stopped:
             if t.yaw_rad is None:
                 return Twist2D(), done
             error = wrap_angle(t.yaw_rad - pose.yaw_rad)
@@ -292,7 +306,7 @@ class GotoController:
             self.turning = False
         if self.turning:
             return Twist2D(0.0, self.turn_rate(error)), self.status(pose, t)
-        speed = min(t.speed_m_s, math.sqrt(2.0 * self.stop_decel * distance)) * max(0.0, math.cos(error))
+        speed = min(t.speed_m_s, self.stop.speed_m_s(distance)) * max(0.0, math.cos(error))
         # Pure pursuit on the leg: the point a look-ahead ahead of the rover's projection onto it.
         lx, ly = t.x_m - t.start_x_m, t.y_m - t.start_y_m
         leg = math.hypot(lx, ly)

@@ -14,6 +14,7 @@ import logging
 import math
 from dataclasses import dataclass, replace
 
+from rover_bridge.command.approach import StopProfile
 from rover_bridge.command.navigation import GotoController, NavStatus, NavTarget, PoseSource, Unresolved, resolve
 from rover_bridge.command.targets import ALTITUDE_IGNORED, SpeedChange, Target
 from rover_bridge.frames import NedPose
@@ -51,7 +52,7 @@ class Navigator:
         self.identity = identity
         self.reporter = reporter
         self.source = source
-        self.controller = GotoController(profile.navigation, profile.limits)
+        self.controller = GotoController(profile.navigation, profile.limits, StopProfile.of(profile))
         self.cruise_m_s: float | None = None  # DO_CHANGE_SPEED's, until the mode leaves GUIDED
         self.last_gcs_heartbeat_s: float | None = None
         self.report_period_s = 1.0 / self.params.report_hz
@@ -136,7 +137,8 @@ class Navigator:
 
     def arrived(self, goal: GotoRequest, status: NavStatus, now_s: float) -> list[Outgoing]:
         """MISSION_ITEM_REACHED (seq 0, as Rover sends for a guided target) and a STATUSTEXT."""
-        # Said as the rover enters the radius (it then brakes to a stop inside it), as Rover says it.
+        # Said inside the radius once the braking curve asks for nearly nothing more (the last command the
+        # limiter takes to zero in one output), not on entering it: the rest is closed along the heading.
         text = f"RB: target reached (within {self.params.arrival_radius_m:g} m)"
         log.info("%s (target from %d:%d)", text, *goal.source)
         self.next_report_s = None

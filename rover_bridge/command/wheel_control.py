@@ -1,53 +1,62 @@
 """Closed-loop wheel speeds (pure): the speed each wheel was asked for, on real motors.
 
-Between the kinematics and the PWM map ([control] mode = closed_loop). Per wheel, every output:
+Between the kinematics and the PWM map ([control] mode = closed_loop). The two wheels' speeds are
+split into the two motions a skid rover has, each its own plant:
 
-    u = target + kp * e + I,    e = r - measured,    I += ki * e * dt
+    common = (left + right) / 2    (driving: its speed lags the motors, the body's mass)
+    turn   = (right - left) / 2    (turning: on a skid rover it may not lag at all: ArduPilot's SITL
+                                    model turns the instant its motors differ)
 
-in wheel speed units (rad/s); u then goes through the PWM map (the measured curve where the profile
-has one: the feedforward). The measured speed comes from WHEEL_DISTANCE (the estimate flow's checked
-increments, differentiated on the autopilot's own stamps), low-pass filtered (speed_filter_hz).
+and each is closed on its own (two degrees of freedom: feedforward, a reference model, PI):
 
-r is the reference: the target through a first-order lag of reference_s, the response to expect of
-a wheel (motor lag, the encoder interval's half-period, the filter). Correcting the error against the
-target itself would count the wheel's own lag in every ramp as a deficit and wind the integrator up
-(an overshoot of 20 % on a 0 -> 0.5 m/s step in the emulator with a weak, curved motor); against r
-only what the feedforward gets wrong is corrected (1.7 % there).
+    u = target + kp * e + I,    e = r(t - delay) - measured,    I += ki * e * dt
 
+in wheel speed units (rad/s); u (per wheel: common - turn, common + turn) then goes through the PWM
+map (the measured curve where the profile has one: the feedforward).
+
+- r, the reference model, is the target through a first-order lag (reference_s for driving,
+  turn_reference_s for turning): the response the feedforward alone should give. It is compared with
+  the measurement as it was when that was measured (`delay`: the measurement's own age, half the
+  span it averages, see below). The error is then only what the feedforward gets wrong (a weak motor,
+  a load, a deadband), not the plant's lag or the encoder's delay: a ramp does not wind the
+  integrator up, and a loop tuned for one plant does not ring on another. The integrators learn only once
+  the reference has settled (SETTLED_FRACTION): a plant faster or slower than the model (the defaults
+  know neither) shows a transient error that is its lag, not a deficit to integrate.
+- The gains come from the rover: `rover-bridge calibrate` measures each motion's lag and the encoder's
+  delay and writes them by the lambda (IMC) rule (rover_bridge.app.calibration.loop_gains). The
+  defaults assume nothing: no proportional gain (a plant that answers at once, behind a delay of two
+  encoder intervals, rings under any P of 1 or more), and an integrator slow enough to be stable
+  on a pure delay and on a lag of 0.3 s alike. Slower than a tuned loop; never ringing.
+- The measured speed is the mean over the last speed_window_s of WHEEL_DISTANCE samples (the distance
+  travelled over their span): ArduPilot stamps WHEEL_DISTANCE with its send time while its encoders
+  are read on another 50 Hz task, so sample by sample the increments are uneven (0, 1 or 2 readings
+  in one message: speeds off by 100 %); over a window the error is one reading at each end.
 - Desaturation: when a wheel's u is beyond what its motor can do (its map's range), both wheels' u
   are scaled by one common factor, as the open-loop clamp does, so the path's curvature is kept.
-- Anti-windup: while the output is saturated, or the kinematics already scaled the targets down,
-  the integrators may only shrink; they are clamped to integrator_max_fraction of the top speed. A wheel
-  held at zero by the direction rule (below) is saturated too: a rover that coasts down slower than the
-  limiter ramps (a handover from 2.7 m/s to a 0.5 m/s request) would otherwise wind its integrator
-  backwards and hold the wheel at zero far below the target (0.19 m/s in the emulator).
+- Anti-windup: while the output is saturated, or the kinematics already scaled the targets down, or a
+  wheel is held at zero by the direction rule (below) or slowed by the handover slew, the integrators
+  may only shrink; they are clamped to integrator_max_fraction of the top speed.
 - Handover slew: for HANDOVER_S after the loop (re)starts, a wheel's command shrinks by at most
-  max_step_rad_s2 per second, the wheel acceleration the limiter's own limits allow (linear plus
-  angular): a loop taking over a moving rover (from the autopilot's own demand, which it does not close)
-  does not cut a wheel faster than the limiter would (a real Rover SITL, AUTO -> MANUAL at 2.7 m/s: 118
-  us in one 50 ms period against the limiter's 63 us, the rover lagging the limiter's braking ramp).
-  Only then: a loop that has been driving brakes along the ramp as hard as its correction asks, as it
-  always has (every other closed-loop behaviour unchanged). A growing command is not slewed (the ramp
-  plus what a weak wheel lacks; how fast a miswired loop runs away is what the wiring monitor tells
-  faults apart by), nor a stop: a zero target is neutral at once.
+  max_step_rad_s2 per second, the wheel acceleration the limiter's own limits allow: a loop taking
+  over a moving rover (from the autopilot's own demand, which it does not close) does not cut a wheel
+  faster than the limiter would. A growing command is not slewed, nor a stop.
 - Resets: targets of zero (neutral, idle, timeout done, link lost, disarmed, refused, stopped) clear
   the integrators and give zero: a stop never kicks a wheel backwards. A non-zero target is never
   answered with the opposite direction either (braking is the limiter's ramp, not reverse thrust).
 - Missing samples: the loop acts only on a current measurement, one no older than OVERDUE_INTERVALS
   of the encoder's own sample interval. Without one it holds: u = target + the correction the
-  integrator had learnt, scaled with the target (never more than it was, and none for a target of the
-  other sign), the integrator frozen, no P term (an old measurement against a moving reference would
-  push harder the longer the silence lasts). The speed the wheels had is kept: a weak motor stays
-  compensated instead of dropping to the bare map. A sample that spans more than encoder_timeout_s
-  (the first after a silence) is the mean over the silence, not the wheel's speed: the loop waits for
-  the next. Encoders silent for encoder_timeout_s are stale (`closed` False: the core says so once).
+  integrators had learnt, per wheel scaled with its target (never more than it was, none for a target
+  of the other sign), the integrators frozen, no P term. A sample that spans more than
+  encoder_timeout_s (the first after a silence) is the mean over the silence: the window starts
+  again. Encoders silent for encoder_timeout_s are stale (`closed` False: the core says so once).
 - Slip (the estimator's verdict): the integrators are frozen (slipping wheels read too fast).
-- Stall handling: a wheel below STILL_FRACTION of its target for STALL_S is held (a stalled or
-  jammed wheel): its integrator stops and its reference follows the measured speed, so when it is
-  released it spins up to the steady command instead of a wound-up one.
+- Stall: a wheel below STALL_FRACTION of its target for STALL_S while commanded beyond
+  BREAKAWAY_FRACTION of its top speed is held (stalled or jammed): the integrators stop and the reference
+  model starts again from the measured speeds, so when it is released it spins up to the steady command,
+  not a wound-up one. Below that command a still wheel is
+  a deadband or a weak low end that the integrators must find.
 
-A D term is left out: at 20-50 Hz encoder rates a derivative of a differentiated distance is
-noise, and the motor's own lag already damps the loop.
+A D term is left out: at 20-50 Hz encoder rates a derivative of a differentiated distance is noise.
 
 WiringMonitor: at bring-up the most common failure of per-wheel control is wiring (a swapped
 channel, a reversed motor or encoder, swapped encoder indices). A wheel commanded above
@@ -58,13 +67,16 @@ a fault; it says which wheel, what it did and what to check.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 from rover_bridge.kinematics import MeasuredWheels, WheelSpeeds
 from rover_bridge.params import ControlParams
 
 STILL_FRACTION = 0.1  # measured below this fraction of the target: the wheel does not turn
-STALL_S = 0.25  # ... for this long: the loop treats it as stalled (integrator held, reference reseeded)
+STALL_FRACTION = 0.1  # the loop: a wheel below this fraction of its target, commanded past the breakaway,
+STALL_S = 0.0  # ... for this long: the loop treats it as stalled (integrators held)
+BREAKAWAY_FRACTION = 0.4  # ... while commanded at least this fraction of its top speed (below: a deadband to find)
 BACKWARDS_FRACTION = 0.2  # measured at least this fraction of the target, opposite sign: wrong way
 SWAP_TOLERANCE = 0.3  # each wheel within this fraction of the other's target: swapped
 SWAP_MIN_DIFFERENCE = 0.3  # the two targets must differ by this fraction of the larger to tell a swap
@@ -74,38 +86,97 @@ RUNAWAY_MARGIN = 0.1  # what a closed loop does to a wheel whose encoder is anot
 # sample (two intervals) is not a silence yet.
 OVERDUE_INTERVALS = 2.5
 HANDOVER_S = 1.0  # the slew's window after the loop (re)starts (docstring)
+# The integrators learn only while the reference has settled within this fraction of the target (or of the top
+# speed, near zero): during a step the plant's own lag, whatever it is, is not mistaken for a weak motor.
+SETTLED_FRACTION = 0.05
+HISTORY_S = 1.0  # how far back the reference model's past is kept for the measurement's delay
 
 
-class SpeedFilter:
-    """First-order low-pass of the measured wheel speeds, on the samples' own stamps."""
+def to_modes(left: float, right: float) -> tuple[float, float]:
+    """Wheel speeds -> (common, turn)."""
+    return 0.5 * (left + right), 0.5 * (right - left)
 
-    def __init__(self, cutoff_hz: float, max_interval_s: float = 1.0) -> None:
-        self.tau_s = 1.0 / (2.0 * math.pi * cutoff_hz)
+
+def to_wheels(common: float, turn: float) -> tuple[float, float]:
+    """(common, turn) -> wheel speeds (left, right)."""
+    return common - turn, common + turn
+
+
+class SpeedWindow:
+    """The wheels' mean speeds over the last `window_s` of samples, on the samples' own stamps."""
+
+    def __init__(self, window_s: float, max_interval_s: float = 1.0) -> None:
+        self.window_s = window_s
         self.max_interval_s = max_interval_s
         self.value: WheelSpeeds | None = None
         self.interval_s: float | None = None  # between the last two samples' stamps
+        self.span_s = 0.0  # how long the value averages over
         self._stamp_s: float | None = None
+        self._parts: deque[tuple[float, float, float]] = deque()  # (span, left * span, right * span)
 
     def update(self, sample: MeasuredWheels) -> WheelSpeeds | None:
-        """The filtered speeds; None for a sample that spans more than max_interval_s (the mean over a
-        silence, not the wheels' speed): the filter starts again from the next one."""
-        s = sample.speeds
-        last, stamp = self.value, self._stamp_s
+        """The mean speeds; None for a sample that spans more than max_interval_s (the mean over a
+        silence, not the wheels' speed) or the first one (its span is not known): the window starts again."""
+        stamp = self._stamp_s
         self._stamp_s = sample.stamp_s
-        if stamp is not None and sample.stamp_s - stamp > self.max_interval_s:
-            self.value, self.interval_s = None, None
+        span = sample.stamp_s - stamp if stamp is not None else math.nan
+        if not span > 0.0 or span > self.max_interval_s:  # first, after a silence, or a clock restart
+            self._parts.clear()
+            self.value, self.interval_s, self.span_s = None, None, 0.0
             return None
-        if last is None or stamp is None or not sample.stamp_s > stamp:
-            self.value = s  # first sample, or after a silence or a clock restart: start from it
-        else:
-            a = 1.0 - math.exp(-(sample.stamp_s - stamp) / self.tau_s)
-            self.value = WheelSpeeds(last.left_rad_s + a * (s.left_rad_s - last.left_rad_s),
-                                     last.right_rad_s + a * (s.right_rad_s - last.right_rad_s))
-        self.interval_s = sample.stamp_s - stamp if stamp is not None and sample.stamp_s > stamp else None
+        self.interval_s = span
+        s = sample.speeds
+        parts = self._parts
+        parts.append((span, s.left_rad_s * span, s.right_rad_s * span))
+        total = sum(p[0] for p in parts)
+        while len(parts) > 1 and total - parts[0][0] >= self.window_s - 1e-9:
+            total -= parts.popleft()[0]
+        self.span_s = total
+        self.value = WheelSpeeds(sum(p[1] for p in parts) / total, sum(p[2] for p in parts) / total)
         return self.value
 
     def reset(self) -> None:
-        self.value, self.interval_s, self._stamp_s = None, None, None
+        self._parts.clear()
+        self.value, self.interval_s, self._stamp_s, self.span_s = None, None, None, 0.0
+
+
+class ReferenceModel:
+    """The response the feedforward should give: each motion's target through its own lag, with its past
+    kept so that a measurement is compared with the reference as it was when it was measured."""
+
+    def __init__(self, lags_s: tuple[float, float]) -> None:
+        self.lags_s = lags_s
+        self.value: list[float] | None = None  # (common, turn); None: starts from the measured speeds
+        self._past: deque[tuple[float, float, float]] = deque()  # (time, common, turn)
+
+    def start(self, modes: tuple[float, float], now_s: float) -> None:
+        self.value = list(modes)
+        self._past.clear()
+        self._past.append((now_s, *modes))
+
+    def follow(self, targets: tuple[float, float], dt_s: float, now_s: float) -> None:
+        value = self.value
+        if value is None:
+            return
+        for k in (0, 1):
+            value[k] += (1.0 - math.exp(-dt_s / self.lags_s[k]) if dt_s > 0.0 else 0.0) * (targets[k] - value[k])
+        past = self._past
+        past.append((now_s, value[0], value[1]))
+        while len(past) > 1 and now_s - past[1][0] >= HISTORY_S:
+            past.popleft()
+
+    def at(self, when_s: float) -> tuple[float, float]:
+        """The reference at `when_s` (the latest one not after it; the oldest kept if none)."""
+        chosen = self._past[0]
+        for entry in self._past:
+            if entry[0] > when_s:
+                break
+            chosen = entry
+        return chosen[1], chosen[2]
+
+    def reset(self) -> None:
+        self.value = None
+        self._past.clear()
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,23 +187,23 @@ class LoopResult:
 
 
 class WheelSpeedLoop:
-    """Per-wheel feedforward + PI with anti-windup and a shared desaturation (see the module docstring)."""
+    """Feedforward + reference model + PI per motion, anti-windup and a shared desaturation (module doc)."""
 
     def __init__(self, params: ControlParams, left_range: tuple[float, float],
                  right_range: tuple[float, float], max_step_rad_s2: float = math.inf) -> None:
-        self.kp = params.kp
+        self.kp = (params.kp, params.turn_kp)
+        self.ki = (params.ki_1_s, params.turn_ki_1_s)
         self.max_step_rad_s2 = max_step_rad_s2  # the most a wheel's command may change per second (docstring)
         self._last: list[float] | None = None  # the last command, while the loop runs
         self._running_s = 0.0  # since the loop (re)started: the slew's window (docstring)
-        self.ki = params.ki_1_s
         self.timeout_s = params.encoder_timeout_s
         self.ranges = (left_range, right_range)  # (fastest reverse, fastest forward), rad/s
-        self.i_max = tuple(params.integrator_max_fraction * max(-lo, hi) for lo, hi in self.ranges)
-        self.reference_s = params.reference_s
-        self.filter = SpeedFilter(params.speed_filter_hz, params.encoder_timeout_s)
-        self.integral = [0.0, 0.0]
-        self._learnt_at = [0.0, 0.0]  # the targets the integrators last learnt at (what a hold scales by)
-        self.reference: list[float] | None = None  # None: starts from the measured speeds
+        self.i_max = params.integrator_max_fraction * min(max(-lo, hi) for lo, hi in self.ranges)
+        self.settled_floor = SETTLED_FRACTION * min(max(-lo, hi) for lo, hi in self.ranges)
+        self.window = SpeedWindow(params.speed_window_s, params.encoder_timeout_s)
+        self.reference = ReferenceModel((params.reference_s, params.turn_reference_s))
+        self.integral = [0.0, 0.0]  # (common, turn)
+        self._learnt_at = [0.0, 0.0]  # the wheel targets the integrators last learnt at (what a hold scales by)
         self._still_since: list[float | None] = [None, None]
         self.measured: WheelSpeeds | None = None
         self._measured_s: float | None = None  # arrival time of the last sample (the caller's clock)
@@ -140,7 +211,7 @@ class WheelSpeedLoop:
     def measure(self, sample: MeasuredWheels, now_s: float) -> None:
         if not sample.speeds.is_finite():
             return
-        value = self.filter.update(sample)
+        value = self.window.update(sample)
         if value is not None:  # None: the mean over a silence, not a measurement
             self.measured = value
             self._measured_s = now_s
@@ -150,14 +221,18 @@ class WheelSpeedLoop:
 
     def current(self, now_s: float) -> bool:
         """Fresh, and no older than OVERDUE_INTERVALS sample intervals: a measurement the loop acts on."""
-        interval = self.filter.interval_s
+        interval = self.window.interval_s
         if not self.fresh(now_s) or self._measured_s is None:
             return False
         return interval is None or now_s - self._measured_s <= OVERDUE_INTERVALS * interval
 
+    def wheel_integral(self) -> tuple[float, float]:
+        """The integrators' correction per wheel (left, right)."""
+        return to_wheels(*self.integral)
+
     def reset(self) -> None:
         self.integral = [0.0, 0.0]
-        self.reference = None  # set from the measured speeds on the next command
+        self.reference.reset()  # starts from the measured speeds on the next command
         self._last = None
         self._running_s = 0.0
         self._still_since = [None, None]
@@ -169,45 +244,60 @@ class WheelSpeedLoop:
             self.reset()
             return LoopResult(target, False, False)
         self._running_s += dt_s
-        follow = 1.0 - math.exp(-dt_s / self.reference_s) if dt_s > 0.0 else 0.0
+        modes = to_modes(*targets)
         measured = self.measured
-        if measured is None or not self.current(now_s):
-            return self._hold(targets, follow, pre_scaled, self.fresh(now_s))
+        if measured is None or not self.current(now_s) or self._measured_s is None:
+            self.reference.follow(modes, dt_s, now_s)  # keeps following: no error piles up for the return
+            return self._hold(targets, pre_scaled, self.fresh(now_s))
         speeds = (measured.left_rad_s, measured.right_rad_s)
-        if self.reference is None:
-            self.reference = list(speeds)  # the wheels are where they are: no error to correct yet
-        reference = self.reference
+        if self.reference.value is None:  # the wheels are where they are: no error to correct yet
+            self.reference.start(to_modes(*speeds), now_s - dt_s)
+        self.reference.follow(modes, dt_s, now_s)
+        held = self._stalled(targets, speeds, now_s)
+        if any(held):  # the reference starts again from where the wheels are: released, no error piled up
+            self.reference.start(to_modes(*speeds), now_s)
+        # The measurement stands for the middle of the span it averages, when it arrived minus half of it.
+        reference = self.reference.at(self._measured_s - 0.5 * self.window.span_s)
+        seen = to_modes(*speeds)
+        errors = (reference[0] - seen[0], reference[1] - seen[1])
+        asked_modes = [t + kp * e + i for t, kp, e, i in zip(modes, self.kp, errors, self.integral, strict=True)]
+        asked = list(to_wheels(*asked_modes))
+        raw = self._slew(asked, dt_s)
+        u, saturated = self._limit(list(raw), targets, pre_scaled)
+        # The integrators may only shrink while a wheel cannot have what it asks (anti-windup, module doc).
+        restrained = saturated or any(
+            raw[k] != asked[k] or (raw[k] != 0.0 if targets[k] == 0.0 else (raw[k] > 0.0) != (targets[k] > 0.0))
+            for k in (0, 1))
+        if not freeze and not any(held) and dt_s > 0.0:
+            # While the reference still moves, what the plant does is its lag, not a deficit: learn nothing new (a
+            # correction that proves too large, a jam's onset, may still unwind). One tolerance for both motions, on
+            # the larger target: the two settle together, or the one settled first would take a wheel's whole deficit.
+            tolerance = SETTLED_FRACTION * max(abs(modes[0]), abs(modes[1]), self.settled_floor)
+            for m in (0, 1):
+                moving = abs(modes[m] - reference[m]) > tolerance
+                grown = self.integral[m] + self.ki[m] * errors[m] * dt_s
+                if (restrained or moving) and abs(grown) > abs(self.integral[m]):
+                    continue
+                self.integral[m] = max(-self.i_max, min(self.i_max, grown))
+        self._learnt_at = list(targets)
+        self._last = list(u)
+        return LoopResult(WheelSpeeds(u[0], u[1]), saturated, True)
+
+    def _stalled(self, targets: tuple[float, float], speeds: tuple[float, float], now_s: float) -> list[bool]:
+        """Which wheels have been below STALL_FRACTION of their target for STALL_S, past the breakaway command."""
         held = [False, False]
+        last = self._last or [0.0, 0.0]
         for k in (0, 1):
-            if abs(speeds[k]) < STILL_FRACTION * abs(targets[k]):
+            # Still while its command is past what starts a wheel (a deadband, a curved map at low speed): the
+            # integrator must be free to find that command; beyond it, a still wheel is jammed.
+            top = self.ranges[k][1] if targets[k] > 0.0 else -self.ranges[k][0]
+            if abs(speeds[k]) < STALL_FRACTION * abs(targets[k]) and abs(last[k]) >= BREAKAWAY_FRACTION * top:
                 since = self._still_since[k]
                 self._still_since[k] = since = now_s if since is None else since
                 held[k] = now_s - since >= STALL_S
             else:
                 self._still_since[k] = None
-            if held[k]:
-                reference[k] = speeds[k]
-            else:
-                reference[k] += follow * (targets[k] - reference[k])
-        errors = (reference[0] - speeds[0], reference[1] - speeds[1])
-        asked = [t + self.kp * e + i for t, e, i in zip(targets, errors, self.integral, strict=True)]
-        raw = self._slew(asked, dt_s)
-        u, saturated = self._limit(list(raw), targets, pre_scaled)
-        if not freeze and dt_s > 0.0:
-            for k in (0, 1):
-                if held[k]:
-                    continue  # a stalled wheel: integrating its error only winds up
-                step = self.ki * errors[k] * dt_s
-                if saturated and (step > 0.0) == (targets[k] > 0.0):
-                    continue  # saturated: the integrator may only unwind
-                if (raw[k] > 0.0) != (targets[k] > 0.0) and (step > 0.0) != (targets[k] > 0.0):
-                    continue  # held at zero (never the other direction): nor may it wind up backwards
-                if raw[k] != asked[k] and (step > 0.0) == (asked[k] > raw[k]):
-                    continue  # slew-limited: the same
-                self.integral[k] = max(-self.i_max[k], min(self.i_max[k], self.integral[k] + step))
-        self._learnt_at = list(targets)
-        self._last = list(u)
-        return LoopResult(WheelSpeeds(u[0], u[1]), saturated, True)
+        return held
 
     def _slew(self, u: list[float], dt_s: float) -> list[float]:
         """Each wheel's command at most max_step_rad_s2 * dt_s from the last one (module docstring)."""
@@ -220,17 +310,15 @@ class WheelSpeedLoop:
         return [x if abs(x) >= abs(prev) and x * prev >= 0.0 else min(prev + step, max(prev - step, x))
                 for prev, x in zip(last, u, strict=True)]
 
-    def _hold(self, targets: tuple[float, float], follow: float, pre_scaled: bool, fresh: bool) -> LoopResult:
-        """No current measurement: the target plus the integrator's correction, scaled with the target
-        against the one it was learnt at (up to 1: never more than it was; negative for a reversed target)."""
+    def _hold(self, targets: tuple[float, float], pre_scaled: bool, fresh: bool) -> LoopResult:
+        """No current measurement: the target plus the integrators' correction, per wheel scaled with the
+        target against the one it was learnt at (up to 1: never more than it was; negative for a reversed
+        target)."""
         u = []
-        for k in (0, 1):
+        for k, correction in enumerate(self.wheel_integral()):
             learnt = self._learnt_at[k]
             ratio = max(-1.0, min(1.0, targets[k] / learnt)) if learnt != 0.0 else 0.0
-            u.append(targets[k] + self.integral[k] * ratio)
-        if self.reference is not None:  # keeps following the target: no error piles up for the return
-            for k in (0, 1):
-                self.reference[k] += follow * (targets[k] - self.reference[k])
+            u.append(targets[k] + correction * ratio)
         self._still_since = [None, None]
         command, saturated = self._limit(u, targets, pre_scaled)
         self._last = list(command)
@@ -324,5 +412,8 @@ class WiringMonitor:
         for w, kind in conditions:
             since = self._since.setdefault(f"{w}:{kind}", now_s)
             if now_s - since >= self.hold_s:
+                if kind == "backwards" and ("both", "swapped") in conditions:
+                    # One wheel's timer began first, but the two are crossed now: the name that says what to check.
+                    return WiringFault("both", "swapped")
                 return WiringFault(w, kind)
         return None

@@ -177,4 +177,9 @@ def table(res: CalibrationResult, top_rad_s: float) -> str:
               f"{'radius ratio right / left':40s} {res.radius_ratio:.4f} "
               f"(radii {res.left_radius_m:.5f} / {res.right_radius_m:.5f} m)",
               f"(the profile's top wheel speed: {top_rad_s:.2f} rad/s)"]
+    if res.tuning is None:
+        lines.append("the speed loop's gains: not identified (a run did not settle); the defaults stay")
+    else:
+        lines += [f"{a:40s} {b}" for a, b in res.tuning.report_rows()]
+        lines.append("(gains by the SIMC rule on each motion's lag and delay: rover_bridge/app/loop_tuning.py)")
     return "\n".join(lines)
