@@ -10,8 +10,8 @@ Emulator (default): the bridge and the emulator in lockstep on one simulated clo
 shipped profile and .parm, sitl/vehicles/ardupilot-skid-bridge.toml: the "wheels" plant, each side lagging
 0.286 s), seed 29 (the figures do not depend on it: the autopilot navigates on the truth), on three rovers:
 the ideal one, the weak-motor rover (left motor 20 % weak, `left_motor_gain = 0.8`: the issue's "weak-motor
-rover") and the imperfect one (bench_control's: left 20 % weak, a 40 us ESC dead zone, speed = command^1.5).
-A few seconds per mission.
+rover") and the imperfect one (bench_control's: left 20 % weak, a 40 us ESC dead zone, speed = command^1.5);
+with ArduPilot alone on the same motors (SERVO1/3 = 73/74, no bridge) for comparison. A few seconds a mission.
 
     python benchmarks/bench_demand_loop.py
 
@@ -37,10 +37,13 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
-from navmetrics import RouteFigures  # noqa: E402
-from navrig import BRIDGE, WAYPOINTS, BridgeRig, shipped_profile  # noqa: E402
+from navmetrics import Point, RouteFigures, route_figures  # noqa: E402
+from navrig import ANCHOR, BRIDGE, WAYPOINTS, BridgeRig, shipped_profile  # noqa: E402
 
-from sitl import VehicleConfig  # noqa: E402
+from rover_bridge.mavlink.dialect import mavlink  # noqa: E402
+from sitl import Emulator, VehicleConfig  # noqa: E402
+from sitl.gcs import InProcessGcs  # noqa: E402
+from sitl.modes import MODE_AUTO  # noqa: E402
 
 WEAK = dataclasses.replace(BRIDGE, left_motor_gain=0.8)
 IMPERFECT = dataclasses.replace(BRIDGE, left_motor_gain=0.8, deadzone_pwm=40, motor_curve_exponent=1.5)
@@ -59,6 +62,25 @@ def emulator_mission(vehicle: VehicleConfig, speed_loop: bool, seed: int = 29) -
         rig.close()
 
 
+def alone_mission(vehicle: VehicleConfig, seed: int = 29) -> RouteFigures:
+    """ArduPilot alone: the same motors on SERVO1/3 = 73/74 (sitl/vehicles/ardupilot-skid-anchor.toml), no
+    bridge, the same mission, in process (as tests/test_nav_e2e.py's anchor)."""
+    motors = {f.name: getattr(vehicle, f.name) for f in dataclasses.fields(vehicle)
+              if f.name in ("left_motor_gain", "right_motor_gain", "deadzone_pwm", "motor_curve_exponent")}
+    g = InProcessGcs(Emulator(dataclasses.replace(ANCHOR, **motors), seed=seed, record_sent=True))
+    g.heartbeat()
+    g.run(0.5)
+    assert g.arm() == mavlink.MAV_RESULT_ACCEPTED
+    items = [g.waypoint(0, 0.0, 0.0)] + [g.waypoint(i + 1, n, e) for i, (n, e) in enumerate(WAYPOINTS)]
+    assert g.upload(items) == mavlink.MAV_MISSION_ACCEPTED
+    track: list[Point] = []
+    assert g.set_mode(MODE_AUTO) == mavlink.MAV_RESULT_ACCEPTED
+    start, at = g.emu.sim_time_s, (g.emu.truth.x_m, g.emu.truth.y_m)
+    done = g.run_until(lambda: len(g.of("MISSION_ITEM_REACHED")) >= len(WAYPOINTS), 90.0,
+                       each=lambda: track.append((g.emu.truth.x_m, g.emu.truth.y_m)))
+    return route_figures(track, at, WAYPOINTS, g.emu.sim_time_s - start if done else float("nan"))
+
+
 def row(label: str, fig: RouteFigures) -> str:
     return (f"| {label} | {fig.time_s:.1f} s | {fig.xtrack_max_m:.2f} / {fig.xtrack_rms_m:.2f} m | "
             + " / ".join(f"{c:.2f}" for c in fig.closest_m) + " m |")
@@ -70,6 +92,7 @@ HEADER = "| rover, who drives | mission time | cross-track max / RMS | closest a
 def emulator(rovers: list[str]) -> None:
     print(HEADER)
     for name in rovers:
+        print(row(f"{name}, ArduPilot alone", alone_mission(ROVERS[name])), flush=True)
         figs = {loop: emulator_mission(ROVERS[name], loop) for loop in (False, True)}
         for loop, fig in figs.items():
             print(row(f"{name}, speed_loop = {str(loop).lower()}", fig), flush=True)
