@@ -12,13 +12,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 from lockstep import Lockstep
-from navmetrics import Point
+from navmetrics import Point, RouteFigures, route_figures
 from pymavlink.mavparm import MAVParmDict
 
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import Profile, load_profile
-from sitl import Emulator, load_vehicle
+from sitl import Emulator, VehicleConfig, load_vehicle
 from sitl.geo import lat_lon_of
+from sitl.modes import MODE_AUTO
 
 REPO = Path(__file__).resolve().parents[1]
 ANCHOR = load_vehicle(REPO / "sitl" / "vehicles" / "ardupilot-skid-anchor.toml")
@@ -44,8 +45,9 @@ def shipped_parm() -> dict[str, float]:
 class BridgeRig:
     """The bridge between a pymavlink GCS and the emulator, the shipped .parm loaded; the true track kept."""
 
-    def __init__(self, profile: Profile | None = None, **params: float) -> None:
-        self.ls = Lockstep(profile or shipped_profile(), BRIDGE, seed=29, start_armed=True)
+    def __init__(self, profile: Profile | None = None, vehicle: VehicleConfig = BRIDGE, seed: int = 29,
+                 **params: float) -> None:
+        self.ls = Lockstep(profile or shipped_profile(), vehicle, seed=seed, start_armed=True)
         for name, value in {**shipped_parm(), **params}.items():
             self.ls.emu.set_param(name, value)
         self.track: list[Point] = []
@@ -101,6 +103,16 @@ class BridgeRig:
             if acks:
                 return int(acks[-1][1].type)
         raise AssertionError("no MISSION_ACK through the bridge")
+
+    def fly_mission(self, points: list[Point], timeout_s: float = 90.0) -> RouteFigures:
+        """Upload `points` through the bridge, fly them in AUTO until the last is reached: the figures from the
+        true track (timed from the mode change; NaN time if the last waypoint was never reached)."""
+        assert self.upload(points) == P.MAV_MISSION_ACCEPTED
+        since = len(self.ls.view.of("MISSION_ITEM_REACHED"))
+        self.set_mode(MODE_AUTO)
+        start, at, first = self.ls.t_s - 0.3, self.track[-1], len(self.track)
+        done = self.run_until(lambda: len(self.ls.view.of("MISSION_ITEM_REACHED")) - since >= len(points), timeout_s)
+        return route_figures(self.track[first:], at, points, self.ls.t_s - start if done else math.nan)
 
     def reached(self) -> list[int]:
         return [m.seq for _t, m in self.ls.view.of("MISSION_ITEM_REACHED")]

@@ -50,12 +50,7 @@ def test_a_mission_uploaded_through_the_bridge_flies_as_ardupilot_alone_flies_it
     anchor = anchor_mission()
     rig = BridgeRig()
     try:
-        assert rig.upload(WAYPOINTS) == P.MAV_MISSION_ACCEPTED
-        rig.set_mode(MODE_AUTO)
-        start, at = rig.ls.t_s - 0.3, rig.track[-1]
-        since = len(rig.track)
-        assert rig.run_until(lambda: len(rig.reached()) >= len(WAYPOINTS), 90.0)
-        bridge = route_figures(rig.track[since:], at, WAYPOINTS, rig.ls.t_s - start)
+        bridge = rig.fly_mission(WAYPOINTS)
         assert rig.reached() == [1, 2, 3]
         assert "RB: AUTO: the autopilot drives" in rig.texts() and "Mission Complete" in rig.texts()
         assert rig.ls.core.command.counters.get("demand.taken", 0) > 0  # the demand drove, through the bridge
