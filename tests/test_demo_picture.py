@@ -3,6 +3,7 @@ picture, and a picture drawn from a made-up run (segments named, a zoom that hol
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import subprocess
@@ -72,3 +73,19 @@ def test_a_picture_is_drawn(tmp_path: Path) -> None:
     errs = [(t - 100.0, 0.01, 0.005, 1.0, 0.5) for t, *_ in s.truth]
     plot(s, errs, tmp_path / "p.png", "made up")
     assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_an_empty_panel_says_why(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from rover_bridge.app.demo_picture import NO_ERRORS, NO_TRUTH, figure
+
+    s = _made_up_run()
+    fig = figure(dataclasses.replace(s, truth=[]), [], "made up")
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    plt.close(fig)
+    assert texts.count(NO_ERRORS) == 2 and NO_TRUTH in texts
+    full = figure(s, [(t - 100.0, 0.01, 0.005, 1.0, 0.5) for t, *_ in s.truth], "made up")
+    assert not {NO_ERRORS, NO_TRUTH} & {t.get_text() for ax in full.axes for t in ax.texts}
+    plt.close(full)

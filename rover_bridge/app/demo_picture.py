@@ -84,8 +84,26 @@ def _draw_paths(ax: Any, series: Series) -> None:
         ax.plot([p[2] for p in data], [p[1] for p in data], **style)
 
 
+NO_TRUTH = "no ground truth reached the demo\n(the emulator's SIM_STATE): nothing to zoom on"
+NO_ERRORS = "no errors to draw: no estimate was judged\nagainst the truth (no ODOMETRY, or no truth)"
+
+
+def say_empty(ax: Any, why: str) -> None:
+    """An empty panel says why it is empty."""
+    ax.text(0.5, 0.5, why, transform=ax.transAxes, ha="center", va="center", fontsize=9, color="0.35")
+
+
 def plot(series: Series, errs: Errors, path: Path, title: str) -> None:
     """Map with the segments named, a zoom on the route's end, position and heading errors over time."""
+    import matplotlib.pyplot as plt
+
+    fig = figure(series, errs, title)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def figure(series: Series, errs: Errors, title: str) -> Any:
+    """plot's figure, not yet saved (its panels for a test to read)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -104,7 +122,8 @@ def plot(series: Series, errs: Errors, path: Path, title: str) -> None:
         ax_map.plot([g.east_m for g in series.goto], [g.north_m for g in series.goto], "rx", markersize=9,
                     label="go-here targets")
     _name_segments(ax_map, series)
-    ax_map.set_aspect("equal", adjustable="datalim")
+    if series.truth or series.wheel or series.ekf:
+        ax_map.set_aspect("equal", adjustable="datalim")
     ax_map.set(xlabel="east [m]", ylabel="north [m]", title=title)
     ax_map.grid(True, alpha=0.3)
 
@@ -125,7 +144,12 @@ def plot(series: Series, errs: Errors, path: Path, title: str) -> None:
                     xlabel="east [m]", ylabel="north [m]")
         ax_zoom.title.set_fontsize(9)
         ax_zoom.grid(True, alpha=0.3)
-    ax_map.legend(loc="best", fontsize=8)
+    else:
+        say_empty(ax_zoom, NO_TRUTH)
+    if series.truth or series.wheel or series.ekf:
+        ax_map.legend(loc="best", fontsize=8)
+    else:
+        say_empty(ax_map, "no path to draw: neither the truth nor an estimate arrived")
 
     ts = [x[0] for x in errs]
     t_origin = series.truth[0][0] if series.truth else 0.0
@@ -139,8 +163,10 @@ def plot(series: Series, errs: Errors, path: Path, title: str) -> None:
     for ax in (ax_pos, ax_hdg):
         ax.set_ylim(bottom=0.0)
         ax.grid(True, alpha=0.3)
-        ax.legend(loc="upper left", fontsize=8)
+        if errs:
+            ax.legend(loc="upper left", fontsize=8)
+        else:
+            say_empty(ax, NO_ERRORS)
     plt.setp(ax_pos.get_xticklabels(), visible=False)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    return fig

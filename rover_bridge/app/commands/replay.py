@@ -60,10 +60,16 @@ def main(args: argparse.Namespace) -> int:
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("right [m]")
         ax.set_ylabel("forward [m]")
-        ax.legend()
+        if result.rows or result.live:
+            ax.legend()
+        else:  # an empty panel says why
+            ax.text(0.5, 0.5, NO_PATH, transform=ax.transAxes, ha="center", va="center", color="0.35")
         fig.savefig(plot, dpi=90)
         print(f"picture: {plot}")
     return 0 if result.rows else 1
+
+
+NO_PATH = "no path: the log holds no wheel samples the estimate\ncould use (WHEEL_DISTANCE) and no ODOMETRY"
 
 
 def log_problem(path: str) -> str | None:
