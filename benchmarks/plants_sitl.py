@@ -23,19 +23,13 @@ from typing import Any
 import plants
 from pymavlink import mavutil
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from ardupilot_rig import EXTRA_PARAMS
+
 from rover_bridge.app.demo import free_udp_port
 from rover_bridge.params import profile_to_toml
 
 mavlink = mavutil.mavlink
-EXTRA_PARAMS = """SERVO1_FUNCTION 51
-SERVO3_FUNCTION 53
-ARMING_CHECK 0
-SERIAL1_PROTOCOL 2
-WENC_TYPE 10
-WENC2_TYPE 10
-WENC_POS_Y 0.8185
-WENC2_POS_Y -0.8185
-"""
 BODY_VELOCITY_MASK = 0b0000_0101_1100_0111
 SIM_STATE_ID = 108
 BOOT_S = 20.0  # GPS and EKF settle (ARMING_CHECK 0 arms at once, but the estimate needs its start)

@@ -39,6 +39,17 @@ def wrap_pi(angle_rad: float) -> float:
     return wrapped - math.pi
 
 
+def arc_step(yaw_rad: float, ds_m: float, dyaw_rad: float) -> tuple[float, float]:
+    """The NED displacement (x north = cos(yaw), y east = sin(yaw)) of an exact arc: ds_m along it while the
+    yaw turns by dyaw_rad from yaw_rad."""
+    if abs(dyaw_rad) > 1e-9:
+        radius = ds_m / dyaw_rad
+        return (radius * (math.sin(yaw_rad + dyaw_rad) - math.sin(yaw_rad)),
+                -radius * (math.cos(yaw_rad + dyaw_rad) - math.cos(yaw_rad)))
+    mid = yaw_rad + 0.5 * dyaw_rad
+    return ds_m * math.cos(mid), ds_m * math.sin(mid)
+
+
 def pwm_to_command(pwm: int, vehicle: VehicleConfig, reversed_: bool = False) -> float:
     """Servo PWM -> normalised motor command in [-1, 1] (0 inside the deadzone or for no pulse)."""
     if pwm <= 0:  # no pulse at all: an ESC treats it as stop
@@ -144,15 +155,7 @@ def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleC
     right_ground = right_dangle * vehicle.right_radius_true_m * (1.0 - inputs.right_slip)
     ds = 0.5 * (left_ground + right_ground)
     dyaw = (left_ground - right_ground) / vehicle.track_true_m  # clockwise positive
-    # Exact arc integration in NED (x north = cos(yaw), y east = sin(yaw)).
-    if abs(dyaw) > 1e-9:
-        radius = ds / dyaw
-        dx = radius * (math.sin(state.yaw_rad + dyaw) - math.sin(state.yaw_rad))
-        dy = -radius * (math.cos(state.yaw_rad + dyaw) - math.cos(state.yaw_rad))
-    else:
-        mid = state.yaw_rad + 0.5 * dyaw
-        dx = ds * math.cos(mid)
-        dy = ds * math.sin(mid)
+    dx, dy = arc_step(state.yaw_rad, ds, dyaw)
     yaw_rate = dyaw / dt_s
     gyro = gyro_reading_rad_s(yaw_rate + vehicle.gyro_bias_rad_s + inputs.gyro_noise_rad_s)
     # The forward acceleration at the end of the step from the motor model itself (the lag's derivative),

@@ -45,7 +45,7 @@ from dataclasses import replace
 
 from sitl.config import VehicleConfig
 from sitl.params import WHEEL_PARAM_PREFIXES
-from sitl.physics import PhysicsState, StepInputs, motor_gains, speed_fraction, wrap_pi
+from sitl.physics import PhysicsState, StepInputs, arc_step, motor_gains, speed_fraction, wrap_pi
 from sitl.sensors import gyro_reading_rad_s
 
 ARDUPILOT_SKID = "ardupilot_skid"
@@ -74,13 +74,7 @@ def step(state: PhysicsState, inputs: StepInputs, dt_s: float, vehicle: VehicleC
     ds = target * dt_s + (state.v_m_s - target) * tau * (1.0 - math.exp(-dt_s / tau))
     yaw_rate = (m_left - m_right) * max_speed / vehicle.track_true_m  # clockwise +, no lag
     dyaw = yaw_rate * dt_s
-    if abs(dyaw) > 1e-9:
-        radius = ds / dyaw
-        dx = radius * (math.sin(state.yaw_rad + dyaw) - math.sin(state.yaw_rad))
-        dy = -radius * (math.cos(state.yaw_rad + dyaw) - math.cos(state.yaw_rad))
-    else:
-        mid = state.yaw_rad + 0.5 * dyaw
-        dx, dy = ds * math.cos(mid), ds * math.sin(mid)
+    dx, dy = arc_step(state.yaw_rad, ds, dyaw)
     half = 0.5 * vehicle.track_true_m
     left_ground, right_ground = ds + dyaw * half, ds - dyaw * half
     left_w = (v_end + yaw_rate * half) / vehicle.left_radius_true_m

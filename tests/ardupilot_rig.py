@@ -34,6 +34,17 @@ REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "params" / "ardupilot-sitl-skid.toml"
 PARM = REPO / "deploy" / "ardupilot-rover.parm"
 EARTH_RADIUS_M = 6378137.0
+# Per-wheel passthrough, SITL's wheel encoders with the profile's effective track (see its comments), no arming
+# checks, MAVLink on SERIAL1 (the truth monitor).
+EXTRA_PARAMS = """SERVO1_FUNCTION 51
+SERVO3_FUNCTION 53
+ARMING_CHECK 0
+SERIAL1_PROTOCOL 2
+WENC_TYPE 10
+WENC2_TYPE 10
+WENC_POS_Y 0.8185
+WENC2_POS_Y -0.8185
+"""
 # The monitor's streams by default: the simulator's truth (position, attitude) at 20 Hz, the outputs at 40 Hz.
 STREAMS = {mavlink.MAVLINK_MSG_ID_SIMSTATE: 50_000, mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: 25_000}
 

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from ardupilot_rig import EXTRA_PARAMS
 from lockstep import free_udp_port
 
 from rover_bridge.mavlink.dialect import mavlink, mavutil
@@ -45,16 +46,6 @@ SERIAL0, SERIAL1 = 5760 + 10 * INSTANCE, 5762 + 10 * INSTANCE
 TRIM = 1500
 HOLD, MANUAL = 4, 0  # Rover custom modes
 GUIDED = 15
-# Per-wheel passthrough, SITL's wheel encoders with the profile's effective track (see its comments).
-EXTRA_PARAMS = """SERVO1_FUNCTION 51
-SERVO3_FUNCTION 53
-ARMING_CHECK 0
-SERIAL1_PROTOCOL 2
-WENC_TYPE 10
-WENC2_TYPE 10
-WENC_POS_Y 0.8185
-WENC2_POS_Y -0.8185
-"""
 EARTH_RADIUS_M = 6378137.0
 BODY_VELOCITY_MASK = 0b0000_0101_1100_0111
 

@@ -27,16 +27,11 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "tests"))
+import ardupilot_rig  # noqa: E402
+
 PROFILE = REPO / "params" / "ardupilot-sitl-skid.toml"
-EXTRA_PARAMS = """SERVO1_FUNCTION 51
-SERVO3_FUNCTION 53
-ARMING_CHECK 0
-SERIAL1_PROTOCOL 2
-WENC_TYPE 10
-WENC2_TYPE 10
-WENC_POS_Y 0.8185
-WENC2_POS_Y -0.8185
-LOG_DISARMED 0
+EXTRA_PARAMS = ardupilot_rig.EXTRA_PARAMS + """LOG_DISARMED 0
 LOG_FILE_DSRMROT 1
 LOG_BITMASK 16518
 """  # LOG_BITMASK: ATTITUDE_MED (ATT 10 Hz), GPS, IMU, RC (RCIN, RCOU, WENC 10 Hz); a new log file at each arming
