@@ -13,7 +13,7 @@ from sitl import Emulator, VehicleConfig
 from sitl.config import ConfigError
 from sitl.fence_store import CIRCLE_EXCLUSION, POLYGON_EXCLUSION, POLYGON_INCLUSION
 from sitl.gcs import InProcessGcs
-from sitl.mav import MAVLinkMessage, mavlink
+from sitl.mav import MAVLinkMessage, mavlink, mavutil
 from sitl.obstacles import Circle, Polygon, inside, obstacle_distance_m, ray_m, ray_segment_m
 from sitl.physics import PhysicsState
 from sitl.range_sensors import proximity_sectors_m, sitl_bisection_m
@@ -242,3 +242,22 @@ def test_avoidance_fence_and_sensor_parameters_are_readable_with_ardupilots_defa
     gcs.send(gcs.mav.param_request_list_encode(1, 1))
     listed = {m.param_id for m in gcs.run(0.05) if m.get_type() == "PARAM_VALUE"}
     assert set(expected) <= listed
+
+
+# ------------------------------------------------------------------ on the wire
+def test_over_udp_the_sectors_come_from_the_autopilot_and_the_scan_from_the_camera_component() -> None:
+    vehicle = VehicleConfig(start_armed=True, params=(("PRX1_TYPE", 10.0),), obstacle_distance_hz=10.0)
+    with Emulator(vehicle, Scenario(obstacles=(WALL,))) as emu:
+        emu.open("udpin:127.0.0.1:0")
+        client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{emu.local_address[1]}", source_system=255)
+        try:
+            client.mav.heartbeat_send(_P.MAV_TYPE_GCS, _P.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            seen: dict[str, set[int]] = {"DISTANCE_SENSOR": set(), "OBSTACLE_DISTANCE": set()}
+            for _ in range(300):  # 3 s of simulated time, lockstep: no wall-clock timing in the assertion
+                emu.step(0.01)
+                while (m := client.recv_match(blocking=False)) is not None:
+                    if m.get_type() in seen:
+                        seen[m.get_type()].add(m.get_srcComponent())
+        finally:
+            client.close()
+    assert seen == {"DISTANCE_SENSOR": {1}, "OBSTACLE_DISTANCE": {_P.MAV_COMP_ID_OBSTACLE_AVOIDANCE}}
