@@ -261,3 +261,37 @@ def test_over_udp_the_sectors_come_from_the_autopilot_and_the_scan_from_the_came
         finally:
             client.close()
     assert seen == {"DISTANCE_SENSOR": {1}, "OBSTACLE_DISTANCE": {_P.MAV_COMP_ID_OBSTACLE_AVOIDANCE}}
+
+
+def test_a_stalled_fence_upload_times_out_and_legacy_items_are_scaled() -> None:
+    emu = Emulator(VehicleConfig(), record_sent=True)
+    gcs = InProcessGcs(emu)
+    gcs.send(gcs.mav.mission_count_encode(1, 1, 3, FENCE))
+    sent = gcs.run(9.0)
+    requests = [m for m in sent if m.get_type() == "MISSION_REQUEST"]
+    assert len(requests) >= 8 and all(m.seq == 0 and m.mission_type == FENCE for m in requests)  # re-asked each second
+    assert "Fence upload timeout" in gcs.texts()
+    acks = [m for m in sent if m.get_type() == "MISSION_ACK"]
+    assert [(m.type, m.mission_type) for m in acks] == [(_P.MAV_MISSION_OPERATION_CANCELLED, FENCE)]
+    # MISSION_ITEM (float degrees) is taken as ArduPilot converts it: lat/lon * 1e7.
+    lat, lon = emu.vehicle.origin_lat_deg, emu.vehicle.origin_lon_deg
+    gcs.send(gcs.mav.mission_count_encode(1, 1, 1, FENCE))
+    gcs.run(0.02)
+    gcs.send(gcs.mav.mission_item_encode(1, 1, 0, _P.MAV_FRAME_GLOBAL, CIRCLE_EXCLUSION, 0, 1, 5.0, 0.0, 0.0, 0.0,
+                                         lat, lon, 0.0, FENCE))
+    assert gcs.run(0.02)[-1].type == _P.MAV_MISSION_ACCEPTED
+    item = emu.autopilot.fence.items[0]
+    # (MISSION_ITEM's float32 keeps about 1.5e-5 deg of a longitude of 149 deg.)
+    assert (item.x, item.y, item.param1) == pytest.approx((round(lat * 1e7), round(lon * 1e7), 5.0), abs=200)
+
+
+def test_only_the_proximity_sensor_sees_the_fence_the_rangefinder_and_camera_see_things() -> None:
+    emu = Emulator(VehicleConfig(start_armed=True, params=(("RNGFND1_TYPE", 100.0), ("RNGFND1_ORIENT", 0.0)),
+                                 obstacle_distance_hz=10.0), record_sent=True)
+    gcs = InProcessGcs(emu)
+    items = [gcs.fence_item(i, POLYGON_INCLUSION, n, e, 3) for i, (n, e) in enumerate([(3, -3), (3, 3), (-3, 0)])]
+    assert gcs.upload(items, mission_type=FENCE) == _P.MAV_MISSION_ACCEPTED
+    sent = gcs.run(1.5)
+    assert {m.current_distance for m in sent if m.get_type() == "DISTANCE_SENSOR"} == {800}  # clear: max + 1 m
+    scans = [m for m in sent if m.get_type() == "OBSTACLE_DISTANCE"]
+    assert scans and all(set(m.distances) == {2001} for m in scans)  # 360 deg, nothing within 20 m
