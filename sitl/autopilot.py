@@ -8,7 +8,8 @@ microseconds of simulated time since the emulator started.
 
 The pieces (each says what it copies of ArduPilot and which source files were read): sitl/rc.py (RC
 inputs, overrides, servo outputs), sitl/streams.py (stream groups, SET_MESSAGE_INTERVAL), sitl/params.py,
-sitl/commands.py, sitl/messages.py, sitl/mission.py + sitl/mission_protocol.py, sitl/rover.py (the
+sitl/commands.py, sitl/messages.py, sitl/mission.py + sitl/mission_protocol.py (+ sitl/fence_protocol.py),
+sitl/range_sensors.py (PRX1, RNGFND1: DISTANCE_SENSOR), sitl/rover.py (the
 loop, modes, home, fence, GCS failsafe) with sitl/navigation.py, sitl/wpnav.py, sitl/poscontrol.py,
 sitl/scurve.py, sitl/control.py, sitl/motors.py and sitl/smartrtl.py, sitl/extnav.py; sitl/skid.py (the
 ardupilot_skid plant's encoders and WHEEL_DISTANCE, sent from Rover's loop).
@@ -68,11 +69,14 @@ from sitl import incoming, messages
 from sitl.config import VehicleConfig
 from sitl.control import NavState
 from sitl.extnav import ExtNavConsumer, ExtNavSettings
+from sitl.fence_protocol import FenceProtocol
+from sitl.fence_store import FenceStore
 from sitl.geo import lat_lon_of, north_east_of
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.mission import Mission, MissionItem
 from sitl.mission_protocol import MissionProtocol
 from sitl.modes import MODE_GUIDED, MODE_HOLD, MODE_MANUAL
+from sitl.obstacles import Shape
 from sitl.params import WHEEL_PARAM_PREFIXES, Param, default_params, set_value
 from sitl.physics import PhysicsState, encoder_counts, pwm_to_command
 from sitl.rc import RcServos
@@ -111,6 +115,8 @@ class Autopilot:
         self.rc = RcServos(vehicle, self.param)
         self.streams = Streams()
         self.mission = Mission()  # in storage: it survives reboots
+        self.fence = FenceStore()  # in storage too
+        self.obstacles: tuple[Shape, ...] = ()  # the world's (the emulator's scenario): what the SITL sensors see
         self.armed = vehicle.start_armed
         self.boot_us = 0
         self.booting_until_us: int | None = None  # set while rebooting: the link is silent
@@ -132,8 +138,9 @@ class Autopilot:
                            self._item_reached, self.lat_lon_of, self._item_position,
                            lambda: self.nav_state(self._physics))
         # The emulator swaps ``outbox`` for a new list after each step: send through it, never keep it.
+        fence = FenceProtocol(self.fence, self.mav, lambda msg: self.outbox.append(msg), self.send_text)
         self.protocol = MissionProtocol(self.mission, self.mav, lambda msg: self.outbox.append(msg), self.send_text,
-                                        self._home_item, self.count)
+                                        self._home_item, self.count, fence)
 
     # ------------------------------------------------------------------ state others read
     @property
@@ -290,15 +297,6 @@ class Autopilot:
             out.append(counts[wheel] * 2.0 * math.pi * radius / param_cpr)
         return out[0], out[1]
 
-    def _manual_mix(self, now_us: int) -> tuple[float, float]:
-        """Rover skid steering in MANUAL: throttle from RC3, steering from RC1 (RCMAP defaults)."""
-        if not self.armed:
-            return 0.0, 0.0
-        throttle, steering = self.rc.normalised(3, now_us), self.rc.normalised(1, now_us)
-        left, right = throttle + steering, throttle - steering
-        scale = max(1.0, abs(left), abs(right))  # keep the turn when saturated
-        return left / scale, right / scale
-
     # ------------------------------------------------------------------ in and out
     def handle(self, msg: MAVLinkMessage, now_us: int) -> None:
         """Process one decoded message (sitl/incoming.py; ignored while rebooting)."""
@@ -341,7 +339,7 @@ class Autopilot:
         self.protocol.update(self.time_boot_ms(now_us))
         left, right = rover.left, rover.right
         if rover.mode == MODE_MANUAL:
-            left, right = self._manual_mix(now_us)
+            left, right = self.rc.manual_mix(now_us, self.armed)
             rover.manual_mix(left, right)
         self.rc.update(now_us, left, right, self.armed)
 

@@ -11,9 +11,11 @@ from typing import Protocol
 
 from sitl.config import VehicleConfig
 from sitl.extnav import ExtNavConsumer
+from sitl.fence_store import FenceStore
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.mission import Mission
 from sitl.mission_protocol import MissionProtocol
+from sitl.obstacles import Shape
 from sitl.params import Param
 from sitl.physics import PhysicsState
 from sitl.rc import RcServos
@@ -33,6 +35,8 @@ class AutopilotView(Protocol):
     rc: RcServos
     streams: Streams
     mission: Mission
+    fence: FenceStore
+    obstacles: tuple[Shape, ...]
     armed: bool
     boot_us: int
     extnav: ExtNavConsumer

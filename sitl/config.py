@@ -99,6 +99,13 @@ class VehicleConfig:
     origin_lat_deg: float = -35.363261
     origin_lon_deg: float = 149.165230
     start_heading_deg: float = 0.0
+    # A depth camera on the companion (sitl/range_sensors.py): OBSTACLE_DISTANCE at this rate (0 = none)
+    # from this component of the autopilot's system, over this field of view (centred forward) and range.
+    obstacle_distance_hz: float = 0.0
+    obstacle_distance_component: int = 196  # MAV_COMP_ID_OBSTACLE_AVOIDANCE
+    obstacle_distance_fov_deg: float = 360.0
+    obstacle_distance_min_m: float = 0.2
+    obstacle_distance_max_m: float = 20.0
     # Autopilot parameters' boot values (name, value), as a defaults .parm file sets them; in a profile
     # a table: [vehicle.params] SERVO5_FUNCTION = 73. Unknown names are refused when the emulator starts.
     params: tuple[tuple[str, float], ...] = ()
@@ -186,6 +193,11 @@ class VehicleConfig:
             out.append(f"gcs_sysid must be 1..255, got {self.gcs_sysid}")
         if self.reboot_silence_s < 0.0:
             out.append(f"reboot_silence_s must be >= 0, got {self.reboot_silence_s}")
+        if not (0.0 <= self.obstacle_distance_hz <= 50.0 and 1 <= self.obstacle_distance_component <= 255
+                and 0.0 < self.obstacle_distance_fov_deg <= 360.0
+                and 0.0 <= self.obstacle_distance_min_m < self.obstacle_distance_max_m <= 655.0):
+            out.append("obstacle_distance_*: need hz in [0, 50], component 1..255, fov_deg in (0, 360], "
+                       "0 <= min_m < max_m <= 655")
         for f in dataclasses.fields(self):
             if f.name.startswith("rate_") and getattr(self, f.name) < 0.0:
                 out.append(f"{f.name} must be >= 0, got {getattr(self, f.name)}")

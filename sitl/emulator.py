@@ -26,8 +26,12 @@ from sitl.config import VehicleConfig
 from sitl.endpoint import Endpoint
 from sitl.faults import FaultConfig, FaultyLink
 from sitl.mav import MAVLinkMessage, mavlink
+from sitl.obstacles import obstacle_distance_m
 from sitl.physics import PhysicsState, TruthState
+from sitl.range_sensors import DepthCamera
 from sitl.scenario import Scenario
+
+OBSTACLE_DISTANCE: int = mavlink.MAVLINK_MSG_ID_OBSTACLE_DISTANCE  # sent as the depth camera's component
 
 
 class _Collector:
@@ -105,6 +109,8 @@ class Emulator:
         self._mav_in = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self._mav_in.robust_parsing = True  # corrupted bytes become counted bad data, not exceptions
         self.autopilot = Autopilot(self.vehicle, self._mav_out, system_id, component_id, seed=seed)
+        self.autopilot.obstacles = self.scenario.obstacles  # what its SITL range sensors see
+        self._camera = DepthCamera(self.vehicle, self._collector, system_id)  # the companion's OBSTACLE_DISTANCE
         self._physics_step = skid.step if self.vehicle.plant == skid.ARDUPILOT_SKID else physics.step
         self._world = _World(self.vehicle, self.scenario, seed)
         self._link_in = FaultyLink(self.faults.inbound, seed=hash_seed(seed, "in"))
@@ -179,6 +185,7 @@ class Emulator:
         self._phys = replace(self._phys, time_s=end / 1e6)  # exact, not a sum of floats
         self.autopilot.update(end, self._phys)
         outgoing = self.autopilot.outbox + self.autopilot.emit(end, self._phys)
+        outgoing += self._camera.due(end, self._phys, self.scenario.obstacles)
         self.autopilot.outbox = []
         self._transmit(outgoing, end)
 
@@ -236,7 +243,7 @@ class Emulator:
                 if msg.get_msgId() in self.withheld:
                     self._counters["tx_withheld"] += 1
                     continue
-                self._mav_out.send(msg)
+                (self._camera.mav if msg.get_msgId() == OBSTACLE_DISTANCE else self._mav_out).send(msg)
                 self._counters["tx_messages"] += 1
                 if self.sent_log is not None:
                     self.sent_log.append((now_s, msg))
@@ -262,30 +269,10 @@ class Emulator:
             msg = parser.decode(bytearray(msg.pack(sender)))
         self.autopilot.handle(msg, self._now_us)
 
-    def run_realtime(
-        self,
-        speedup: float = 1.0,
-        duration_s: float | None = None,
-        stop: threading.Event | None = None,
-        step_s: float = 0.01,
-    ) -> None:
+    def run_realtime(self, speedup: float = 1.0, duration_s: float | None = None,
+                     stop: threading.Event | None = None, step_s: float = 0.01) -> None:
         """Step on the wall clock (``speedup`` x real time) until ``stop`` is set or ``duration_s``."""
-        if speedup <= 0:
-            raise ValueError(f"speedup must be positive, got {speedup!r}")
-        stop = stop if stop is not None else threading.Event()
-        start_sim_us = self._now_us
-        start_wall = time.monotonic()
-        while not stop.is_set():
-            elapsed_s = (self._now_us - start_sim_us) / 1e6
-            if duration_s is not None and elapsed_s >= duration_s - 1e-9:
-                break
-            self.step(step_s)
-            target = start_wall + (self._now_us - start_sim_us) / 1e6 / speedup
-            delay = target - time.monotonic()
-            if delay > 0:
-                stop.wait(delay)
-            elif delay < -0.5:  # far behind (a slow machine): do not burst to catch up
-                start_wall -= delay
+        run_realtime(self, speedup, duration_s, stop, step_s)
 
     # ------------------------------------------------------------------ state
     @property
@@ -376,6 +363,14 @@ class Emulator:
         self.autopilot.start_reboot(self._now_us)
         self._link_out.clear()  # whatever was in flight dies with the board
 
+    def nearest_obstacle_m(self) -> float | None:
+        """Truth: from the rover's centre to the nearest scenario obstacle (0 inside one; None without any)."""
+        return obstacle_distance_m((self._phys.x_m, self._phys.y_m), self.scenario.obstacles)
+
+    def collided(self) -> bool:
+        """Truth: the rover's centre is inside a scenario obstacle (no contact physics: it drives on)."""
+        return self.nearest_obstacle_m() == 0.0
+
     def teleport(self, x_m: float = 0.0, y_m: float = 0.0, yaw_rad: float = 0.0) -> None:
         """Place the robot (a test convenience; the wheels keep their state)."""
         self._phys = replace(self._phys, x_m=x_m, y_m=y_m, yaw_rad=physics.wrap_pi(yaw_rad))
@@ -387,3 +382,24 @@ def hash_seed(seed: int, tag: str) -> int:
     for byte in f"{seed}/{tag}".encode():
         value = ((value ^ byte) * 1099511628211) & 0xFFFFFFFFFFFFFFFF
     return value
+
+
+def run_realtime(emu: Emulator, speedup: float, duration_s: float | None, stop: threading.Event | None,
+                 step_s: float) -> None:
+    """``Emulator.run_realtime``: step ``emu`` on the wall clock."""
+    if speedup <= 0:
+        raise ValueError(f"speedup must be positive, got {speedup!r}")
+    stop = stop if stop is not None else threading.Event()
+    start_sim_us = emu.sim_time_us
+    start_wall = time.monotonic()
+    while not stop.is_set():
+        elapsed_s = (emu.sim_time_us - start_sim_us) / 1e6
+        if duration_s is not None and elapsed_s >= duration_s - 1e-9:
+            break
+        emu.step(step_s)
+        target = start_wall + (emu.sim_time_us - start_sim_us) / 1e6 / speedup
+        delay = target - time.monotonic()
+        if delay > 0:
+            stop.wait(delay)
+        elif delay < -0.5:  # far behind (a slow machine): do not burst to catch up
+            start_wall -= delay

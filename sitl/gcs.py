@@ -105,10 +105,19 @@ class InProcessGcs:
                                                 _P.MAV_CMD_NAV_WAYPOINT, 0, 1, hold_s, 0.0, 0.0, 0.0,
                                                 round(lat * 1e7), round(lon * 1e7), 0.0)
 
-    def upload(self, items: list[MAVLinkMessage], timeout_s: float = 5.0) -> int | None:
+    def fence_item(self, seq: int, command: int, north_m: float, east_m: float, param1: float) -> MAVLinkMessage:
+        """A MISSION_ITEM_INT of mission type FENCE north/east of the origin (param1: vertex count or radius)."""
+        v = self.emu.vehicle
+        lat, lon = lat_lon_of(north_m, east_m, v.origin_lat_deg, v.origin_lon_deg)
+        return self.mav.mission_item_int_encode(1, 1, seq, _P.MAV_FRAME_GLOBAL_INT, command, 0, 1, param1, 0.0, 0.0,
+                                                0.0, round(lat * 1e7), round(lon * 1e7), 0.0,
+                                                _P.MAV_MISSION_TYPE_FENCE)
+
+    def upload(self, items: list[MAVLinkMessage], timeout_s: float = 5.0,
+               mission_type: int = _P.MAV_MISSION_TYPE_MISSION) -> int | None:
         """MISSION_COUNT, then each item MISSION_REQUEST(_INT) asks for; the final MISSION_ACK type."""
         start = len(self.received)
-        self.send(self.mav.mission_count_encode(1, 1, len(items), _P.MAV_MISSION_TYPE_MISSION))
+        self.send(self.mav.mission_count_encode(1, 1, len(items), mission_type))
         answered: set[int] = set()
         end = self.emu.sim_time_s + timeout_s
         while self.emu.sim_time_s < end:
@@ -122,18 +131,18 @@ class InProcessGcs:
             self.run(0.02)
         return None
 
-    def download(self, timeout_s: float = 5.0) -> list[MAVLinkMessage]:
+    def download(self, timeout_s: float = 5.0, mission_type: int = _P.MAV_MISSION_TYPE_MISSION) -> list[MAVLinkMessage]:
         """MISSION_REQUEST_LIST, then MISSION_REQUEST_INT for each item; the MISSION_ITEM_INTs, in order."""
-        self.send(self.mav.mission_request_list_encode(1, 1, _P.MAV_MISSION_TYPE_MISSION))
+        self.send(self.mav.mission_request_list_encode(1, 1, mission_type))
         counts = [m for m in self.run(0.02) if m.get_type() == "MISSION_COUNT"]
         if not counts:
             return []
         items: list[MAVLinkMessage] = []
         for seq in range(counts[-1].count):
-            self.send(self.mav.mission_request_int_encode(1, 1, seq, _P.MAV_MISSION_TYPE_MISSION))
+            self.send(self.mav.mission_request_int_encode(1, 1, seq, mission_type))
             got = [m for m in self.run(0.02) if m.get_type() == "MISSION_ITEM_INT" and m.seq == seq]
             if not got:
                 break
             items.append(got[-1])
-        self.send(self.mav.mission_ack_encode(1, 1, _P.MAV_MISSION_ACCEPTED, _P.MAV_MISSION_TYPE_MISSION))
+        self.send(self.mav.mission_ack_encode(1, 1, _P.MAV_MISSION_ACCEPTED, mission_type))
         return items

@@ -3,13 +3,15 @@
 ``build`` makes one message of the streams (the builders moved here unchanged from sitl/autopilot.py);
 ``build_all`` adds the messages ArduPilot sends only sometimes: NAV_CONTROLLER_OUTPUT only in modes
 that navigate (Rover's send_nav_controller_output), PID_TUNING per GCS_PID_MASK bit (1: steering,
-axis 5, deg/s; 2: speed, axis 4, m/s: Rover's send_pid_tuning), HOME_POSITION once home is set.
+axis 5, deg/s; 2: speed, axis 4, m/s: Rover's send_pid_tuning), HOME_POSITION once home is set,
+DISTANCE_SENSOR per range sensor fitted (sitl/range_sensors.py).
 """
 
 from __future__ import annotations
 
 import math
 
+from sitl import range_sensors
 from sitl.autopilot_view import AutopilotView
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.mission import COMPLETE, RUNNING
@@ -146,6 +148,8 @@ def _build_all(ap: AutopilotView, msg_id: int, now_us: int, s: PhysicsState) -> 
         nan = float("nan")
         return [m.home_position_encode(round(lat * 1e7), round(lon * 1e7), HOME_ALT_MM, home[0], home[1], 0.0,
                                        [nan] * 4, 0.0, 0.0, 0.0, max(0, now_us - ap.boot_us))]
+    if msg_id == _P.MAVLINK_MSG_ID_DISTANCE_SENSOR:
+        return range_sensors.distance_sensors(ap, now_us, s)
     if msg_id == _P.MAVLINK_MSG_ID_LOCAL_POSITION_NED and not ap.has_position():
         return []  # ArduPilot sends no local position before its EKF has one
     return [build(ap, msg_id, now_us, s)]

@@ -22,14 +22,15 @@ GCS_Common.cpp (handle_mission_item, handle_mission_set_current) and AP_Mission.
   answered by MISSION_CURRENT n when taken.
 - MISSION_ITEM(_INT) with current = 2 or 3 (a guided "go here" or an altitude change) is not a mission
   item; the emulator does not navigate GUIDED and ignores it (counted), as it always has.
-- Fence and rally transfers (mission_type 1, 2) are not emulated: MAV_MISSION_UNSUPPORTED, and an empty
-  list on download.
+- Fence transfers (mission_type 1) are sitl/fence_protocol.py's. Rally transfers (2) are not emulated:
+  MAV_MISSION_UNSUPPORTED, and an empty list on download.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+from sitl.fence_protocol import TYPE_FENCE, FenceProtocol
 from sitl.mav import MAVLinkMessage, mavlink
 from sitl.mission import CMD_NAV_LAST, CMD_NAV_WAYPOINT, Mission, MissionItem, MissionRunner
 
@@ -78,8 +79,9 @@ class MissionProtocol:
 
     def __init__(self, mission: Mission, mav: mavlink.MAVLink, send: Callable[[MAVLinkMessage], None],
                  say: Callable[[int, str], None], home_item: Callable[[], MissionItem],
-                 count: Callable[[str], None]) -> None:
+                 count: Callable[[str], None], fence: FenceProtocol | None = None) -> None:
         self.mission = mission
+        self.fence = fence
         self.mav = mav
         self._send = send
         self._say = say
@@ -123,6 +125,9 @@ class MissionProtocol:
             return
         if mid in (_P.MAVLINK_MSG_ID_MISSION_ITEM, _P.MAVLINK_MSG_ID_MISSION_ITEM_INT) and int(msg.current) in (2, 3):
             self._count_event("mission_guided_ignored")  # guided "go here" / altitude change: not navigated
+            return
+        if mission_type == TYPE_FENCE and self.fence is not None:
+            self.fence.handle(msg, now_ms)
             return
         if mission_type != TYPE_MISSION:
             if mid == _P.MAVLINK_MSG_ID_MISSION_REQUEST_LIST:
@@ -213,6 +218,8 @@ class MissionProtocol:
 
     def update(self, now_ms: int) -> None:
         """Upload timeout and re-requests (called every loop)."""
+        if self.fence is not None:
+            self.fence.update(now_ms)
         if not self.receiving:
             return
         if now_ms - self._last_receive_ms > UPLOAD_TIMEOUT_MS:

@@ -5,7 +5,10 @@ Defaults read in ArduPilot: Rover/Parameters.cpp, Rover/config.h, libraries/AR_W
 libraries/APM_Control/AR_AttitudeControl.cpp (ATC_*), libraries/AR_Motors/AP_MotorsUGV.cpp (MOT_*),
 libraries/SRV_Channel/SRV_Channel.cpp (SERVOn_MIN 1100, MAX 1900, TRIM 1500), libraries/AC_Fence
 (FENCE_*: Rover's FENCE_TYPE default is circle + polygon = 6), libraries/AP_SmartRTL (SRTL_*),
-libraries/AP_Scheduler (SCHED_LOOP_RATE 50 for Rover). The vehicle's two motor outputs boot with
+libraries/AP_Scheduler (SCHED_LOOP_RATE 50 for Rover), libraries/AC_Avoidance/AC_Avoid.cpp (AVOID_*: ENABLE 3 =
+fence + proximity, MARGIN 2, BEHAVE 1 = stop for Rover, BACKUP_SPD 0.75, ACCEL_MAX 3, BACKUP_DZ 0.1),
+libraries/AP_Proximity/AP_Proximity_Params.cpp (PRX1_*), libraries/AP_RangeFinder/AP_RangeFinder_Params.cpp
+(RNGFND1_*: 4.7's MIN/MAX in metres, 0.2/7, ORIENT 25 = down). The vehicle's two motor outputs boot with
 MIN/MAX = the vehicle's pwm_min/pwm_max (as ArduPilot's SITL rover.parm sets SERVO1/3 to 1000-2000).
 The profile's ``params`` table sets any other boot value (e.g. SERVO5_FUNCTION = 73).
 """
@@ -45,6 +48,13 @@ _ROVER_DEFAULTS: dict[str, tuple[float, int]] = {
     "FENCE_RADIUS": (300.0, _REAL), "FENCE_MARGIN": (2.0, _REAL),
     "FS_ACTION": (2.0, _INT8), "FS_TIMEOUT": (1.5, _REAL), "FS_GCS_ENABLE": (0.0, _INT8),
     "FS_GCS_TIMEOUT": (5.0, _REAL), "FS_OPTIONS": (0.0, _INT),
+    # Simple avoidance (AC_Avoid): fence and proximity by default, Rover stops (BEHAVE 1).
+    "AVOID_ENABLE": (3.0, _INT8), "AVOID_MARGIN": (2.0, _REAL), "AVOID_BEHAVE": (1.0, _INT8),
+    "AVOID_BACKUP_SPD": (0.75, _REAL), "AVOID_ACCEL_MAX": (3.0, _REAL), "AVOID_BACKUP_DZ": (0.1, _REAL),
+    # Range sensors (sitl/range_sensors.py): none fitted; PRX1_TYPE 10 = SITL, RNGFND1_TYPE 100 = SITL.
+    "PRX1_TYPE": (0.0, _INT8), "PRX1_ORIENT": (0.0, _INT8), "PRX1_YAW_CORR": (0.0, _INT),
+    "RNGFND1_TYPE": (0.0, _INT8), "RNGFND1_ORIENT": (25.0, _INT8), "RNGFND1_MIN": (0.2, _REAL),
+    "RNGFND1_MAX": (7.0, _REAL),
 }
 
 

@@ -88,6 +88,15 @@ class RcServos:
             return 0.0
         return max(-1.0, min(1.0, (offset - (dz if offset > 0 else -dz)) / (500.0 - dz)))
 
+    def manual_mix(self, now_us: int, armed: bool) -> tuple[float, float]:
+        """Rover skid steering in MANUAL: throttle from RC3, steering from RC1 (RCMAP defaults)."""
+        if not armed:
+            return 0.0, 0.0
+        throttle, steering = self.normalised(3, now_us), self.normalised(1, now_us)
+        left, right = throttle + steering, throttle - steering
+        scale = max(1.0, abs(left), abs(right))  # keep the turn when saturated
+        return left / scale, right / scale
+
     # ------------------------------------------------------------------ outputs
     def function(self, n: int) -> int:
         return int(self._param(f"SERVO{n}_FUNCTION"))

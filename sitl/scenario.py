@@ -44,7 +44,17 @@ at_s = 5.0
 type = "link_silence"    # nothing in either direction (a cable pulled)
 start_s = 6.0
 end_s = 7.0
+
+[[obstacles]]            # a wall, a box: a polygon in NED metres (sitl/obstacles.py)
+polygon = [[10.0, -5.0], [10.0, 5.0], [10.5, 5.0], [10.5, -5.0]]
+
+[[obstacles]]            # a post
+circle = [4.0, 3.0]
+radius_m = 0.5
 ```
+Obstacles are what the emulator's range sensors see (sitl/range_sensors.py) and what the truth measures
+against (``Emulator.nearest_obstacle_m``, ``Emulator.collided``); the rover drives through them (no contact
+physics: a collision is detected, not simulated).
 
 ``kind`` is accepted for ``type``, and ``duration_s`` for ``end_s`` (end = start + duration).
 """
@@ -53,11 +63,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from sitl.config import ConfigError, read_toml
+from sitl.obstacles import Shape, parse_obstacle
 
 WHEELS = ("left", "right", "both")
 
@@ -126,6 +137,7 @@ class Scenario:
     silences: tuple[LinkSilence, ...] = ()
     loads: tuple[LoadWindow, ...] = ()
     stalls: tuple[StallWindow, ...] = ()
+    obstacles: tuple[Shape, ...] = ()
 
     def slip_ratio(self, wheel: str, time_s: float, x_m: float, y_m: float) -> float:
         """Largest slip ratio acting on ``wheel`` whose contact point is at (x_m, y_m)."""
@@ -240,13 +252,20 @@ def _check(ev: Mapping[str, Any]) -> list[str]:
 
 
 def load_scenario(path: str | Path) -> Scenario:
-    """Load a scenario TOML file (a list of ``[[event]]`` tables)."""
+    """Load a scenario TOML file (a list of ``[[event]]`` tables and of ``[[obstacles]]``)."""
     p = Path(path)
     data = read_toml(p)
-    unknown = [k for k in data if k != "event"]
+    unknown = [k for k in data if k not in ("event", "obstacles")]
     if unknown:
         raise ConfigError(str(p), [f"unknown top-level key {k!r}" for k in unknown])
-    events = data.get("event", [])
+    events, raw_obstacles = data.get("event", []), data.get("obstacles", [])
     if not isinstance(events, list):
         raise ConfigError(str(p), ["'event' must be an array of tables ([[event]])"])
-    return Scenario.from_events(events, source=str(p))
+    if not isinstance(raw_obstacles, list):
+        raise ConfigError(str(p), ["'obstacles' must be an array of tables ([[obstacles]])"])
+    shapes = [parse_obstacle(raw) for raw in raw_obstacles]
+    problems = [f"obstacles[{i}]: {s}" for i, s in enumerate(shapes) if isinstance(s, str)]
+    if problems:
+        raise ConfigError(str(p), problems)
+    scenario = Scenario.from_events(events, source=str(p))
+    return replace(scenario, obstacles=tuple(s for s in shapes if not isinstance(s, str)))

@@ -6,7 +6,8 @@ GCS_Common.cpp (set_message_interval, cap_message_interval, handle_command_reque
 - Groups: RAW_SENSORS (RAW_IMU, SCALED_IMU), EXTENDED_STATUS (SYS_STATUS, MISSION_CURRENT,
   NAV_CONTROLLER_OUTPUT), RC_CHANNELS (SERVO_OUTPUT_RAW, RC_CHANNELS), POSITION (GLOBAL_POSITION_INT,
   LOCAL_POSITION_NED), EXTRA1 (ATTITUDE, SIMSTATE, PID_TUNING, WHEEL_DISTANCE), EXTRA2 (VFR_HUD),
-  EXTRA3 (SYSTEM_TIME). HEARTBEAT at 1 Hz. HOME_POSITION only on request or when home is set.
+  EXTRA3 (SYSTEM_TIME, DISTANCE_SENSOR: one slot sends every range sensor's). HEARTBEAT at 1 Hz.
+  HOME_POSITION only on request or when home is set.
 - SET_MESSAGE_INTERVAL: param3 != 0 is DENIED; -1 stops the message, 0 goes back to the group's rate,
   other negatives are DENIED; the interval is taken in whole milliseconds (1 ms at least, 60 s at most);
   one shorter than 1.25 loop periods (interval_ms * 800 < loop period in us: 25 ms at
@@ -48,7 +49,7 @@ STREAM_GROUPS: dict[int, tuple[str, tuple[int, ...]]] = {
          _P.MAVLINK_MSG_ID_WHEEL_DISTANCE),
     ),
     _P.MAV_DATA_STREAM_EXTRA2: ("SR0_EXTRA2", (_P.MAVLINK_MSG_ID_VFR_HUD,)),
-    _P.MAV_DATA_STREAM_EXTRA3: ("SR0_EXTRA3", (_P.MAVLINK_MSG_ID_SYSTEM_TIME,)),
+    _P.MAV_DATA_STREAM_EXTRA3: ("SR0_EXTRA3", (_P.MAVLINK_MSG_ID_SYSTEM_TIME, _P.MAVLINK_MSG_ID_DISTANCE_SENSOR)),
 }
 GROUP_OF_MESSAGE = {m: g for g, (_, ids) in STREAM_GROUPS.items() for m in ids}
 STREAMABLE = (_P.MAVLINK_MSG_ID_HEARTBEAT, *GROUP_OF_MESSAGE)
