@@ -15,6 +15,7 @@ from rover_bridge.command.obstacles import (
     sector_bearing_ccw_rad,
     sector_of_cw_deg,
 )
+from rover_bridge.mavlink.dialect import mavlink
 
 LIDAR = (1, 195, 0)
 SONAR = (1, 158, 1)
@@ -156,3 +157,22 @@ def test_obstacle_distance_in_an_earth_frame_needs_the_heading() -> None:
     assert front.state is SectorState.OBSTACLE and front.bearing_ccw_rad == pytest.approx(0.0, abs=1e-9)
     pic.obstacle_distance(0.0, SONAR, d, 5, 0.0, 0.0, 20, 1200, 8, None)  # BODY_NED: not a frame for scans
     assert pic.counts.ignored_frame == 1
+
+
+def test_pymavlink_messages_feed_the_picture() -> None:
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=195)
+    pic = ObstaclePicture()
+    ds = mav.distance_sensor_encode(0, 20, 1200, 300, 0, 7, 2, 0)  # YAW_90: right, 3 m
+    ds.pack(mav)  # sets the header: the sender is (1, 195), sensor id 7
+    assert pic.handle(ds, 0.0)
+    d = scan()
+    d[0] = 250
+    od = mav.obstacle_distance_encode(0, 0, d, 5, 20, 1200, 0.0, 0.0, MAV_FRAME_BODY_FRD)
+    od.pack(mav)
+    assert pic.handle(od, 0.0)
+    assert not pic.handle(mav.heartbeat_encode(6, 8, 0, 0, 0), 0.0)
+    view = pic.view(0.0)
+    assert view.sectors[2].distance_m == pytest.approx(3.0)
+    assert view.sectors[2].bearing_ccw_rad == pytest.approx(-math.pi / 2)
+    assert view.sectors[0].distance_m == pytest.approx(2.5)
+    assert pic.view(0.6).silent_sensors == ((1, 195, 0), (1, 195, 7))

@@ -30,6 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 from rover_bridge.frames import yaw_flu_from_yaw_frd
+from rover_bridge.mavlink.dialect import MAVLinkMessage
 
 SECTOR_COUNT = 8
 SECTOR_WIDTH_DEG = 360.0 / SECTOR_COUNT
@@ -185,6 +186,24 @@ class ObstaclePicture:
             self._entries[(sensor, sector)] = _Entry(now_s, SectorState.OBSTACLE, bearing, distance_m)
         for sector in clear - closest.keys():
             self._entries[(sensor, sector)] = _Entry(now_s, SectorState.CLEAR, sector_bearing_ccw_rad(sector), None)
+
+    def handle(self, msg: MAVLinkMessage, now_s: float, heading_cw_rad: float | None = None) -> bool:
+        """Feed a DISTANCE_SENSOR or OBSTACLE_DISTANCE (others: False). The sender's (system, component, id)
+        is the sensor; `heading_cw_rad` (ATTITUDE.yaw) for earth-frame scans."""
+        kind = msg.get_type()
+        if kind == "DISTANCE_SENSOR":
+            self.distance_sensor(now_s, (msg.get_srcSystem(), msg.get_srcComponent(), int(msg.id)),
+                                 int(msg.orientation), int(msg.current_distance), int(msg.min_distance),
+                                 int(msg.max_distance))
+            return True
+        if kind == "OBSTACLE_DISTANCE":
+            self.obstacle_distance(now_s, (msg.get_srcSystem(), msg.get_srcComponent(), 0), list(msg.distances),
+                                   int(msg.increment), float(getattr(msg, "increment_f", 0.0) or 0.0),
+                                   float(getattr(msg, "angle_offset", 0.0) or 0.0), int(msg.min_distance),
+                                   int(msg.max_distance), int(getattr(msg, "frame", MAV_FRAME_GLOBAL)),
+                                   heading_cw_rad)
+            return True
+        return False
 
     def view(self, now_s: float) -> ObstacleView:
         """Every sector's state at `now_s`, and the sensors that went silent."""
