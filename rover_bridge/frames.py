@@ -27,6 +27,11 @@ def yaw_frd_from_yaw_flu(yaw_ccw_rad: float) -> float:
     return -yaw_ccw_rad
 
 
+def yaw_flu_from_yaw_frd(yaw_cw_rad: float) -> float:
+    """A heading or bearing clockwise + (FRD, NED, MAVLink sensor orientations) -> ours (counter-clockwise +)."""
+    return -yaw_cw_rad
+
+
 def y_frd_from_y_flu(y_left_m: float) -> float:
     """Lateral coordinate: y left (ours) -> y right (FRD)."""
     return -y_left_m

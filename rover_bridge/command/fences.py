@@ -1,0 +1,168 @@
+"""Fence geometry for avoidance (pure): how far the rover may drive along its direction of travel before it has to
+have stopped FENCE_MARGIN inside its fences, as ArduPilot's AC_Avoid works it out in BEHAVE 1 (stop, Rover's
+default): adjust_velocity_circle_fence and adjust_velocity_polygon.
+
+Positions are local north/east metres from the fence origin (home); directions are headings clockwise from
+north (ATTITUDE.yaw; reversing is the heading + pi). Polygons may be given as lat/lon and are flattened about an
+origin as the bridge's navigation does (an equirectangular patch: fences are hundreds of metres, not more).
+
+- circle (FENCE_RADIUS around home): inside radius - margin, the distance along the ray to the circle of radius
+  - margin; beyond it, motion outward stops and motion inward is free up to the inner circle's far side
+  (ArduPilot leaves a rover outside the circle to its fence failsafe; here only motion back inside passes);
+- inclusion polygon, rover inside: the nearest edge the ray crosses, minus the margin (at or inside the margin:
+  stop); exclusion polygon, rover outside: the same for its edges (a ray that misses it is not limited);
+- outside an inclusion polygon or inside an exclusion one (breached): only motion toward the nearest point of
+  its boundary passes (the way back), anything else stops.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+EARTH_RADIUS_M = 6378137.0
+_EPS = 1e-9
+
+Point = tuple[float, float]  # (north m, east m)
+
+
+def ne_from_lat_lon(origin_lat_deg: float, origin_lon_deg: float, lat_deg: float, lon_deg: float) -> Point:
+    """(north m, east m) of a lat/lon from the origin, flat earth about the origin."""
+    north = math.radians(lat_deg - origin_lat_deg) * EARTH_RADIUS_M
+    east = math.radians(lon_deg - origin_lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(origin_lat_deg))
+    return north, east
+
+
+@dataclass(frozen=True, slots=True)
+class CircleFence:
+    """FENCE_RADIUS around home (the origin)."""
+
+    radius_m: float
+    center_north_m: float = 0.0
+    center_east_m: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class PolygonFence:
+    """An inclusion (stay inside) or exclusion (stay outside) polygon, vertices in order, not closed."""
+
+    points_ne: tuple[Point, ...]
+    inclusion: bool = True
+
+    @classmethod
+    def from_lat_lon(cls, points_deg: Sequence[tuple[float, float]], origin_lat_deg: float,
+                     origin_lon_deg: float, inclusion: bool = True) -> PolygonFence:
+        return cls(tuple(ne_from_lat_lon(origin_lat_deg, origin_lon_deg, lat, lon) for lat, lon in points_deg),
+                   inclusion)
+
+
+@dataclass(frozen=True, slots=True)
+class Fences:
+    """Every fence the autopilot has (FENCE_TYPE's circle and polygons) and FENCE_MARGIN."""
+
+    margin_m: float
+    circle: CircleFence | None = None
+    polygons: tuple[PolygonFence, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class FenceClearance:
+    """How far the rover may still travel along its direction before it must be at rest (the margin already
+    taken off; 0 = stop now; None = no fence in the way) and whether it is outside a fence already."""
+
+    distance_m: float | None
+    breached: bool = False
+
+
+def _edges(points: Sequence[Point]) -> list[tuple[Point, Point]]:
+    return [(points[i], points[(i + 1) % len(points)]) for i in range(len(points))]
+
+
+def inside_polygon(north_m: float, east_m: float, points: Sequence[Point]) -> bool:
+    """Even-odd ray casting (AC_Fence's Polygon_outside, negated)."""
+    inside = False
+    for (n1, e1), (n2, e2) in _edges(points):
+        if (e1 > east_m) != (e2 > east_m):
+            n_cross = n1 + (east_m - e1) * (n2 - n1) / (e2 - e1)
+            if north_m < n_cross:
+                inside = not inside
+    return inside
+
+
+def ray_polygon_distance_m(north_m: float, east_m: float, dir_north: float, dir_east: float,
+                           points: Sequence[Point]) -> float | None:
+    """Distance along the unit ray to the nearest edge it crosses, or None if it crosses none."""
+    best: float | None = None
+    for (n1, e1), (n2, e2) in _edges(points):
+        sn, se = n2 - n1, e2 - e1
+        denom = dir_north * se - dir_east * sn
+        if abs(denom) < _EPS:
+            continue  # parallel: driving along an edge never reaches it
+        qn, qe = n1 - north_m, e1 - east_m
+        t = (qn * se - qe * sn) / denom
+        u = (qn * dir_east - qe * dir_north) / denom
+        if t >= 0.0 and -_EPS <= u <= 1.0 + _EPS and (best is None or t < best):
+            best = t
+    return best
+
+
+def nearest_boundary_vector(north_m: float, east_m: float, points: Sequence[Point]) -> Point:
+    """From the point to the closest point of the polygon's boundary."""
+    best: Point = (math.inf, math.inf)
+    for (n1, e1), (n2, e2) in _edges(points):
+        sn, se = n2 - n1, e2 - e1
+        length_sq = sn * sn + se * se
+        u = 0.0 if length_sq < _EPS else max(0.0, min(1.0, ((north_m - n1) * sn + (east_m - e1) * se) / length_sq))
+        vec = (n1 + u * sn - north_m, e1 + u * se - east_m)
+        if math.hypot(*vec) < math.hypot(*best):
+            best = vec
+    return best
+
+
+def ray_circle_exit_m(north_m: float, east_m: float, dir_north: float, dir_east: float, radius_m: float) -> float:
+    """Distance along the unit ray to where it leaves a circle about the origin (the far crossing)."""
+    b = north_m * dir_north + east_m * dir_east
+    c = north_m * north_m + east_m * east_m - radius_m * radius_m
+    return -b + math.sqrt(max(b * b - c, 0.0))
+
+
+def _circle(fence: CircleFence, margin_m: float, north_m: float, east_m: float, dn: float,
+            de: float) -> FenceClearance:
+    if margin_m > fence.radius_m:
+        return FenceClearance(None)  # as AC_Avoid: a margin wider than the fence disables it
+    pn, pe = north_m - fence.center_north_m, east_m - fence.center_east_m
+    dist = math.hypot(pn, pe)
+    outward = pn * dn + pe * de >= 0.0
+    inner_m = fence.radius_m - margin_m
+    if dist < inner_m:
+        return FenceClearance(ray_circle_exit_m(pn, pe, dn, de, inner_m))
+    breached = dist > fence.radius_m
+    if outward:
+        return FenceClearance(0.0, breached)
+    # inward: free until the far side of the inner circle, if the ray crosses it at all
+    b = pn * dn + pe * de
+    if b * b - (dist * dist - inner_m * inner_m) < 0.0:
+        return FenceClearance(None, breached)
+    return FenceClearance(ray_circle_exit_m(pn, pe, dn, de, inner_m), breached)
+
+
+def _polygon(fence: PolygonFence, margin_m: float, north_m: float, east_m: float, dn: float,
+             de: float) -> FenceClearance:
+    if len(fence.points_ne) < 3:
+        return FenceClearance(None)
+    if inside_polygon(north_m, east_m, fence.points_ne) != fence.inclusion:
+        vn, ve = nearest_boundary_vector(north_m, east_m, fence.points_ne)
+        return FenceClearance(None if vn * dn + ve * de > 0.0 else 0.0, breached=True)
+    t = ray_polygon_distance_m(north_m, east_m, dn, de, fence.points_ne)
+    return FenceClearance(None if t is None else max(t - margin_m, 0.0))
+
+
+def fence_clearance(fences: Fences, north_m: float, east_m: float, travel_cw_rad: float) -> FenceClearance:
+    """The tightest clearance over every fence for travel from (north, east) toward `travel_cw_rad`."""
+    dn, de = math.cos(travel_cw_rad), math.sin(travel_cw_rad)
+    parts = [_polygon(p, fences.margin_m, north_m, east_m, dn, de) for p in fences.polygons]
+    if fences.circle is not None:
+        parts.append(_circle(fences.circle, fences.margin_m, north_m, east_m, dn, de))
+    distances = [p.distance_m for p in parts if p.distance_m is not None]
+    return FenceClearance(min(distances) if distances else None, any(p.breached for p in parts))
