@@ -24,7 +24,7 @@ import plants
 from pymavlink import mavutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from ardupilot_rig import EXTRA_PARAMS
+from ardupilot_rig import EXTRA_PARAMS, stop_process
 
 from rover_bridge.app.demo import free_udp_port
 from rover_bridge.params import profile_to_toml
@@ -119,15 +119,6 @@ def _connect(url: str, system: int, component: int, timeout_s: float = 60.0) -> 
             time.sleep(0.5)
 
 
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    proc.terminate()
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
 INSTANCE = 13  # SITL's ports 5760/5762 + 10 x instance: not the tests' 4, 5 and 6, which may be running
 
 
@@ -170,7 +161,7 @@ def drive_ardupilot(binary: str, instance: int = INSTANCE) -> plants.Trace:
             if links is not None:
                 links.close()
             for proc in reversed(procs):
-                _stop(proc)
+                stop_process(proc)
     if not trace.t_s or not trace.odometry:
         raise RuntimeError(f"no truth ({len(trace.t_s)}) or no ODOMETRY ({len(trace.odometry)}) from the real SITL")
     return trace

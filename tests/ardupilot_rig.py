@@ -49,6 +49,16 @@ WENC2_POS_Y -0.8185
 STREAMS = {mavlink.MAVLINK_MSG_ID_SIMSTATE: 50_000, mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: 25_000}
 
 
+def stop_process(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM, then SIGKILL if it has not gone within 10 s."""
+    proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def default_params(binary: str) -> Path:
     given = os.environ.get("ROVER_BRIDGE_ARDUPILOT_PARAMS")
     return Path(given) if given else Path(binary).resolve().parents[3] / "Tools" / "autotest" / "default_params"
@@ -219,12 +229,7 @@ class Sitl:
 
     def close(self) -> None:
         self.monitor.close()
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
+        stop_process(self.proc)
         self.log.close()
 
 

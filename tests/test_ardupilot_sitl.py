@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from ardupilot_rig import EXTRA_PARAMS
+from ardupilot_rig import EXTRA_PARAMS, stop_process
 from lockstep import free_udp_port
 
 from rover_bridge.mavlink.dialect import mavlink, mavutil
@@ -151,12 +151,7 @@ def ardupilot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Monitor]:
         yield monitor
         monitor.close()
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_process(proc)
 
 
 class Gcs:
