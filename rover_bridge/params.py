@@ -410,6 +410,32 @@ class SecurityParams:
 
 
 @dataclass(frozen=True, slots=True)
+class AvoidanceParams:
+    enabled: bool = _p(
+        True, "Slow the bridge's own drivers (GCS velocity requests, MANUAL_CONTROL, position targets) so the "
+        "rover stops AVOID_MARGIN short of what the vehicle's DISTANCE_SENSOR / OBSTACLE_DISTANCE show, as "
+        "ArduPilot's simple avoidance does (AVOID_ENABLE, AVOID_MARGIN read from the autopilot); nothing changes "
+        "until such a message is seen.")
+    in_manual: bool = _p(False, "Avoid in MANUAL too (ArduPilot does not avoid in MANUAL).")
+    crawl_speed_m_s: float = _p(
+        0.2, "While a range sensor that was seen is silent (sensor_timeout_s), the speed in any direction is "
+        "capped at this.", unit="m/s", lo=0.0, hi=5.0)
+    reaction_delay_s: float = _p(
+        0.3, "Time from an override to the wheels' answer (the autopilot's loop, the motors' lag); one output "
+        "period is added. The speed toward an obstacle is capped so the rover stops after this delay.",
+        unit="s", lo=0.0, hi=2.0)
+    sector_timeout_s: float = _p(
+        1.0, "A sector's reading older than this is unknown (ArduPilot's PROXIMITY_FACE_RESET_MS).",
+        unit="s", lo=0.1, hi=10.0)
+    sensor_timeout_s: float = _p(
+        0.5, "A range sensor seen and then silent this long slows the rover to crawl_speed_m_s (ArduPilot's "
+        "PROXIMITY_MAV_TIMEOUT_MS); at most sector_timeout_s.", unit="s", lo=0.1, hi=10.0)
+    sensor_rate_hz: float = _p(
+        10.0, "Once the autopilot sends DISTANCE_SENSOR, it is asked for at this rate (its EXTRA3 stream is often "
+        "1 Hz: too slow for sensor_timeout_s); 0: not asked.", unit="Hz", lo=0.0, hi=50.0)
+
+
+@dataclass(frozen=True, slots=True)
 class Profile:
     """A whole robot profile. Construct through `load_profile` / `profile_from_dict`."""
 
@@ -428,6 +454,7 @@ class Profile:
     estimator: EstimatorParams = field(default_factory=EstimatorParams)
     odometry: OdometryParams = field(default_factory=OdometryParams)
     security: SecurityParams = field(default_factory=SecurityParams)
+    avoidance: AvoidanceParams = field(default_factory=AvoidanceParams)
 
 
 @dataclass(frozen=True, slots=True)
@@ -594,6 +621,12 @@ def _cross_checks(p: Profile, bad: frozenset[str] = frozenset()) -> list[str]:
     if (checkable("security.require_signed_commands", "security.key_file")
             and p.security.require_signed_commands and not p.security.key_file):
         problems.append("security: require_signed_commands = true needs key_file")
+    a = p.avoidance
+    if (checkable("avoidance.sensor_timeout_s", "avoidance.sector_timeout_s")
+            and a.sensor_timeout_s > a.sector_timeout_s):
+        # Between the two a dead sensor's sectors are unknown (no cap) and it is not yet silent (no crawl).
+        problems.append("avoidance: sensor_timeout_s must not exceed sector_timeout_s (a dead sensor would go "
+                        "unnoticed in between)")
     return problems
 
 

@@ -27,6 +27,7 @@ from rover_bridge.params import Profile
 HEARTBEAT_PERIOD_S = 1.0
 _SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
 _HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
+_DISTANCE_SENSOR = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
 _DEMAND_IDS = frozenset(getattr(mavlink, f"MAVLINK_MSG_ID_{name}") for name in CommandCore.DEMAND_READS)
 # A gyro sample waits at most this long for the next message or tick before the estimate flow gets it.
 GYRO_HOLD_MAX_S = 0.025
@@ -57,6 +58,13 @@ class BridgeCore:
             self._demand = Stream("SERVO_OUTPUT_RAW", _SERVO_OUTPUT_RAW, mavlink.MAV_DATA_STREAM_RC_CHANNELS,
                                   rate_hz=profile.demand.rate_hz, wanted=False)
             self.estimate.streams.add(self._demand)
+        # The autopilot's range sensors (simple avoidance, rover_bridge.command.proximity) at [avoidance]
+        # sensor_rate_hz once it has sent one: its EXTRA3 stream is often 1 Hz, slower than the sensor timeout.
+        self._ranges: Stream | None = None
+        if profile.avoidance.enabled and profile.avoidance.sensor_rate_hz > 0.0:
+            self._ranges = Stream("DISTANCE_SENSOR", _DISTANCE_SENSOR, mavlink.MAV_DATA_STREAM_EXTRA3,
+                                  rate_hz=profile.avoidance.sensor_rate_hz, check_rate=False, wanted=False)
+            self.estimate.streams.add(self._ranges)
         # [security] in front of both cores: a refused frame reaches neither, nor the autopilot.
         self.gate = CommandGate(profile, self.identity, self.reporter)
         self._subcores: tuple[SubCore, ...] = (self.command, self.estimate)
@@ -127,6 +135,10 @@ class BridgeCore:
             re_ = Reaction(re_.consumed, (*re_.out, *self.estimate.streams.want(self._demand.name, now_s)))
             self._ap_always = self._ap_always | _DEMAND_IDS  # decoded from now on
             self._autopilot_reads = self._ap_always | self._ap_gyro
+        elif (msg_id == _DISTANCE_SENSOR and from_autopilot and self._ranges is not None and not self._ranges.wanted
+              and inc.msg.get_srcComponent() == self.identity.autopilot_component_id
+              and self.command.avoid.picture is not None):
+            re_ = Reaction(re_.consumed, (*re_.out, *self.estimate.streams.want(self._ranges.name, now_s)))
         if not (rc.out or re_.out or held):
             return re_ if re_.consumed else rc
         return Reaction(consumed=rc.consumed or re_.consumed, out=(*held, *rc.out, *re_.out))

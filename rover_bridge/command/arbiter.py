@@ -24,8 +24,9 @@ from collections.abc import Callable
 
 from rover_bridge.command.drivers import STATE_TEXT, CommandState, Driver
 from rover_bridge.command.gcs_requests import GcsRequests
-from rover_bridge.command.modes import ModeTable
+from rover_bridge.command.modes import AUTOPILOT, ModeTable
 from rover_bridge.command.output_stage import OutputStage
+from rover_bridge.command.proximity import ProximityAvoidance
 from rover_bridge.command.safety import SafetyGates
 from rover_bridge.command.vehicle import VehicleState
 from rover_bridge.command.wheel_control import WiringFault
@@ -57,6 +58,7 @@ class Arbiter:
         self.state = CommandState.WAITING
         self.active: Driver | None = None  # the driver holding the wheels (its request is the request)
         self.gcs: GcsRequests | None = None  # set by the core: the driver a finished target brakes through
+        self.avoid: ProximityAvoidance | None = None  # set by the core: caps the bridge's own drivers' twist
         self.watchers: list[Callable[[float], list[Outgoing]]] = []  # run before each evaluation
 
     # ----------------------------------------------------------------- what drivers ask (drivers.Wheels)
@@ -155,9 +157,14 @@ class Arbiter:
         state = self.state
         said: list[Outgoing] = []
         target: Twist2D | None = None
+        stage = self.stage
         if state is CommandState.ACTIVE and self.active is not None:
             target, said = self.active.target(now_s)
-        stage = self.stage
+            avoid = self.avoid
+            # Simple avoidance after the safety gates, before the limiter; the autopilot's navigation avoids itself.
+            if target is not None and avoid is not None and self.active.name != AUTOPILOT:
+                target, more = avoid.limit(target, now_s, self.vehicle.driving_mode, stage.limiter.current.v_m_s)
+                said = said + more
         stage.step_limiter(target, now_s, answer, ramping=state in _RAMPING)
         if state is CommandState.GCS_SILENT:
             self.stage.skip(now_s)  # set_state sent neutral and release; nothing more

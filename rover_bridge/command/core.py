@@ -8,6 +8,8 @@
         |   which may hold the wheels in which mode           .modes ([modes])
  safety gates: link, disarm, faults, calibrate, stop modes    .safety
         |   who holds the wheels now                          .arbiter
+ simple avoidance: the bridge's drivers stop short of         .proximity (.obstacles, .avoidance)
+        |   obstacles (DISTANCE_SENSOR, OBSTACLE_DISTANCE)
  output stage: limiter -> kinematics -> desaturation ->       .output_stage
                wheel speed loop -> PWM -> messages
  the stop at exit, confirmed                                  .stopping
@@ -32,6 +34,7 @@ from rover_bridge.command.modes import AUTOPILOT, ModeTable
 from rover_bridge.command.navigation import PoseSource
 from rover_bridge.command.output_stage import OutputStage
 from rover_bridge.command.outputs import OutputMap, WheelPwm
+from rover_bridge.command.proximity import SENSOR_MESSAGES, ProximityAvoidance
 from rover_bridge.command.safety import SafetyGates
 from rover_bridge.command.setpoints import REQUEST_TYPES
 from rover_bridge.command.stopping import EMERGENCY_PROBE_TS1, StopConfirmation
@@ -61,7 +64,7 @@ class CommandCore:
     # What handle() reads from the autopilot link (BridgeCore decodes nothing else from it); the demand only
     # once the autopilot has driven in one of its modes (demand_wanted): until then nobody needs it decoded.
     AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC", "PARAM_VALUE",
-                                 "STATUSTEXT"}) | AUTOPILOT_NAV_ECHOES
+                                 "STATUSTEXT"}) | AUTOPILOT_NAV_ECHOES | SENSOR_MESSAGES
     DEMAND_READS = frozenset({"SERVO_OUTPUT_RAW"})
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter,
@@ -82,6 +85,7 @@ class CommandCore:
                                        count)
         self.autopilot = AutopilotNavigation(profile, identity, reporter, vehicle, modes, self.stage, wheels, count)
         wheels.watchers.append(self.targets.watch)
+        self.avoid = wheels.avoid = ProximityAvoidance(profile, identity, reporter, vehicle, count)
 
     # ----------------------------------------------------------------- read-only views
 
@@ -149,7 +153,10 @@ class CommandCore:
                 return self._on_command_ack(msg, now_s)
             elif kind == "SERVO_OUTPUT_RAW":
                 return self.autopilot.handle(msg, now_s)
+            elif kind in SENSOR_MESSAGES:
+                self.avoid.on_sensor(msg, now_s)
             elif kind == "PARAM_VALUE":
+                self.avoid.on_param_value(msg, now_s)
                 return Reaction(consumed=False, out=tuple(self.gates.gcs_failsafe.on_param_value(msg, now_s)))
             elif kind == "STATUSTEXT":
                 return self._resumed(now_s) if self.gates.gcs_failsafe.on_statustext(msg) else NOTHING
@@ -157,6 +164,10 @@ class CommandCore:
                 if kind == "NAV_CONTROLLER_OUTPUT":
                     self.autopilot.on_nav(msg, now_s)
                 return Reaction(consumed=True) if self.targets.echo_to_hide(msg) else NOTHING
+            return NOTHING
+        if kind in SENSOR_MESSAGES:  # e.g. a depth camera on the companion computer (the vehicle's system)
+            if msg.get_srcComponent() != self.identity.autopilot_component_id:  # the autopilot's come its own way
+                self.avoid.on_sensor(msg, now_s)
             return NOTHING
         if kind in GCS_SEEN:
             resumed = self.gates.gcs_failsafe.on_gcs(msg, now_s)
@@ -185,7 +196,7 @@ class CommandCore:
             if self.stopper.timed_out(now_s):
                 return self.wheels.set_state(CommandState.STOPPED, now_s, STOP_UNCONFIRMED)
             return self.stopper.messages(now_s) if self.stopper.resend_due(now_s) else []
-        out = self.targets.mode_change_tick(now_s) + self.gates.gcs_failsafe.tick(now_s)
+        out = self.targets.mode_change_tick(now_s) + self.gates.gcs_failsafe.tick(now_s) + self.avoid.tick(now_s)
         nxt = self.stage.next_output_s
         out += self.wheels.advance(now_s, force_output=nxt is None or now_s >= nxt)
         if self.wheels.active is self.targets and self.state is CommandState.ACTIVE:
@@ -263,6 +274,7 @@ class CommandCore:
             return NOTHING
         if vehicle.last_heartbeat_s is None or vehicle.link_lost(now_s):
             self.gates.gcs_failsafe.autopilot_back(now_s)  # first seen, or back (rebooted?): read its FS_GCS_*
+            self.avoid.autopilot_back(now_s)  # and AVOID_*, once a range sensor has been seen
         vehicle.on_heartbeat(msg, now_s)
         self.gates.gcs_failsafe.silence.on_mode(vehicle.custom_mode)
         if not self.targets.in_guided():

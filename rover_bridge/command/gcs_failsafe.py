@@ -76,10 +76,12 @@ class FailsafeParams:
 
 
 class ParamReader:
-    """PARAM_REQUEST_READ for PARAM_NAMES until each is answered (a few attempts); PARAM_VALUEs taken any time, and
-    asked for again when one changes a value or comes unasked, until two in a row agree (module doc)."""
+    """PARAM_REQUEST_READ for `names` until each is answered (a few attempts); PARAM_VALUEs taken any time, and
+    asked for again when one changes a value or comes unasked, until two in a row agree (module doc). The GCS
+    failsafe reads PARAM_NAMES; simple avoidance reads its AVOID_* with the same rules."""
 
-    def __init__(self) -> None:
+    def __init__(self, names: tuple[str, ...] = PARAM_NAMES) -> None:
+        self.names = names
         self.values: dict[str, float] = {}
         self._attempts = 0
         self._next_s: float | None = None
@@ -94,6 +96,11 @@ class ParamReader:
             return None
         return FailsafeParams(int(v["FS_GCS_ENABLE"]), v.get("FS_GCS_TIMEOUT", 5.0), int(v.get("FS_OPTIONS", 0)))
 
+    def confirmed(self, name: str) -> float | None:
+        """The value the autopilot has said (an answer to a request, or said twice); None while unknown or while
+        a lone unasked PARAM_VALUE that changed it waits for the autopilot's word."""
+        return None if name in self._unconfirmed else self.values.get(name)
+
     def restart(self, now_s: float) -> None:
         """Ask again from now (a first heartbeat, or the autopilot back after a gap or a reboot)."""
         self.values.clear()
@@ -104,7 +111,7 @@ class ParamReader:
         return self._next_s is not None and now_s >= self._next_s
 
     def requests(self, now_s: float, target_system: int, target_component: int) -> list[MAVLinkMessage]:
-        missing = [name for name in PARAM_NAMES if name not in self.values or name in self._unconfirmed]
+        missing = [name for name in self.names if name not in self.values or name in self._unconfirmed]
         if not missing or self._attempts >= PARAM_ATTEMPTS:
             for name in self._unconfirmed:  # not the autopilot's word: it did not say it again when asked
                 del self.values[name]
@@ -124,7 +131,7 @@ class ParamReader:
             name = name.decode("ascii", "replace")
         name = str(name).rstrip("\x00")
         value = float(msg.param_value)
-        if name not in PARAM_NAMES or not math.isfinite(value):
+        if name not in self.names or not math.isfinite(value):
             return False
         old = self.values.get(name)
         self.values[name] = value

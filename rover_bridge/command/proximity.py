@@ -1,0 +1,160 @@
+"""Simple avoidance in the command flow (pure): the bridge's own drivers stop AVOID_MARGIN short of obstacles.
+
+The gate sits between the safety gates and the output stage (rover_bridge.command.arbiter): the twist a GCS
+velocity request, MANUAL_CONTROL or a position target wants has its speed toward an obstacle capped by
+`avoidance.limit_velocity` before the limiter. The autopilot's own navigation is not touched (ArduPilot avoids
+in it itself), nor is MANUAL unless [avoidance] in_manual (ArduPilot does not avoid in MANUAL).
+
+- Picture: every DISTANCE_SENSOR and OBSTACLE_DISTANCE from the vehicle's system (any component, either link)
+  feeds one `ObstaclePicture`, with ATTITUDE's yaw for earth-frame scans. Nothing is built, asked or changed
+  until the first such message: a rover without range sensors drives exactly as before.
+- Parameters: AVOID_ENABLE (bit 1: proximity), AVOID_MARGIN and AVOID_BACKUP_SPD are read from the autopilot
+  (PARAM_REQUEST_READ once a sensor is seen, and after the autopilot comes back), with the GCS failsafe's
+  ParamReader. Until the autopilot has said them ArduPilot's defaults apply (AVOID_ENABLE 3, AVOID_MARGIN 2):
+  avoiding with the defaults is the safe side of not knowing. A lone unasked PARAM_VALUE is used only once the
+  autopilot confirms it (a forged AVOID_ENABLE 0 must not switch avoidance off).
+- The rule: the stopping speed at half the profile's max_linear_decel_m_s2, as Rover uses half ATC_DECEL_MAX
+  (brakes earlier and gentler: room for a rover that brakes worse than its profile), after the reaction delay
+  plus one output period. A reading `age_s` old is taken `|v| * age_s` nearer (the rover has moved since).
+  AVOID_BACKUP_SPD is read and reported by the limiter, not applied: the bridge only lowers a request.
+- Blind: a sensor seen and then silent caps the speed at crawl_speed_m_s in every direction, said once.
+- What it does is said by STATUSTEXT on each change (rate-limited) and counted (`avoid.*`, in --stats-json).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+
+from rover_bridge.command.avoidance import AvoidReason, AvoidSettings, Limited, limit_velocity
+from rover_bridge.command.gcs_failsafe import ParamReader
+from rover_bridge.command.obstacles import ObstaclePicture, ObstacleView, SectorState
+from rover_bridge.command.vehicle import VehicleState
+from rover_bridge.kinematics import Twist2D
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
+from rover_bridge.mavlink.identity import Identity
+from rover_bridge.mavlink.report import Reporter
+from rover_bridge.mavlink.wire import Link, Outgoing
+from rover_bridge.params import Profile
+
+SENSOR_MESSAGES = frozenset({"DISTANCE_SENSOR", "OBSTACLE_DISTANCE"})
+AVOID_PARAMS = ("AVOID_ENABLE", "AVOID_MARGIN", "AVOID_BACKUP_SPD")
+ARDUPILOT_DEFAULTS = {"AVOID_ENABLE": 3.0, "AVOID_MARGIN": 2.0, "AVOID_BACKUP_SPD": 0.75}
+AVOID_PROXIMITY = 2  # AVOID_ENABLE bit 1 (bit 0 is the fence: not wired yet)
+ROVER_MANUAL = int(mavlink.ROVER_MODE_MANUAL)
+_OBSTACLE = frozenset({AvoidReason.OBSTACLE_SLOW, AvoidReason.OBSTACLE_STOP})  # said once, not per flip
+
+
+class ProximityAvoidance:
+    """The picture, the AVOID_* parameters and the cap on the bridge's drivers' twist (module doc)."""
+
+    def __init__(self, profile: Profile, identity: Identity, reporter: Reporter, vehicle: VehicleState,
+                 count: Callable[[str], None]) -> None:
+        p = profile.avoidance
+        self.params = p
+        self.identity = identity
+        self.reporter = reporter
+        self.vehicle = vehicle
+        self._count = count
+        self.decel_m_s2 = 0.5 * profile.limits.max_linear_decel_m_s2  # Rover: 0.5 * ATC_DECEL_MAX
+        self.delay_s = p.reaction_delay_s + 1.0 / profile.command.rate_hz
+        self.picture: ObstaclePicture | None = None  # None until a sensor is seen: no cost, no change
+        self.reader = ParamReader(AVOID_PARAMS)
+        self.reason = AvoidReason.PASS  # the last output's
+        self.blind = False  # a silent sensor was said
+
+    # ----------------------------------------------------------------- inputs
+
+    def on_sensor(self, msg: MAVLinkMessage, now_s: float) -> None:
+        """A DISTANCE_SENSOR or OBSTACLE_DISTANCE (any link): the vehicle's system only."""
+        if not self.params.enabled or msg.get_srcSystem() != self.identity.vehicle_system_id:
+            return
+        if self.picture is None:
+            self.picture = ObstaclePicture(self.params.sector_timeout_s, self.params.sensor_timeout_s)
+            self.reader.restart(now_s)
+            self._count("avoid.sensor_seen")
+        self.picture.handle(msg, now_s, self.vehicle.fresh_yaw(now_s))
+
+    def autopilot_back(self, now_s: float) -> None:
+        """The autopilot's first heartbeat or one after a gap (a reboot): read AVOID_* again if they matter."""
+        if self.picture is not None:
+            self.reader.restart(now_s)
+
+    def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> None:
+        if (self.picture is not None and msg.get_srcSystem() == self.identity.vehicle_system_id
+                and msg.get_srcComponent() == self.identity.autopilot_component_id):
+            self.reader.on_param_value(msg, now_s)
+
+    def tick(self, now_s: float) -> list[Outgoing]:
+        vehicle = self.identity.vehicle_system_id
+        if not self.reader.due(now_s) or vehicle is None:
+            return []
+        msgs = self.reader.requests(now_s, vehicle, self.identity.autopilot_component_id)
+        return [Outgoing(Link.AUTOPILOT, m, self.identity.own_system_id, self.identity.component_id) for m in msgs]
+
+    # ----------------------------------------------------------------- the cap
+
+    def value(self, name: str) -> float:
+        """An AVOID_* parameter as used now: the autopilot's word, else ArduPilot's default."""
+        said = self.reader.confirmed(name)
+        return ARDUPILOT_DEFAULTS[name] if said is None else said
+
+    def settings(self) -> AvoidSettings | None:
+        """The limiter's settings now; None when AVOID_ENABLE has no proximity bit."""
+        if not int(self.value("AVOID_ENABLE")) & AVOID_PROXIMITY:
+            return None
+        return AvoidSettings(margin_m=max(self.value("AVOID_MARGIN"), 0.0), decel_m_s2=self.decel_m_s2,
+                             delay_s=self.delay_s, crawl_speed_m_s=self.params.crawl_speed_m_s,
+                             backup_speed_m_s=self.value("AVOID_BACKUP_SPD"))
+
+    def limit(self, target: Twist2D, now_s: float, mode: int | None,
+              moving_m_s: float) -> tuple[Twist2D, list[Outgoing]]:
+        """The driver's twist with its speed toward obstacles capped (`moving_m_s`: the limiter's speed now)."""
+        picture = self.picture
+        if picture is None:
+            return target, []
+        settings = self.settings()
+        if settings is None or (mode == ROVER_MANUAL and not self.params.in_manual):
+            return target, self._said(Limited(target.v_m_s, target.omega_rad_s), now_s)
+        view = _aged(picture.view(now_s), abs(moving_m_s))
+        limited = limit_velocity(target.v_m_s, target.omega_rad_s, settings, view)
+        out = self._blind(view.blind, now_s) + self._said(limited, now_s)
+        if limited.v_m_s == target.v_m_s:
+            return target, out
+        return Twist2D(limited.v_m_s, target.omega_rad_s), out
+
+    # ----------------------------------------------------------------- saying it
+
+    def _said(self, limited: Limited, now_s: float) -> list[Outgoing]:
+        reason = limited.reason
+        if reason is self.reason:
+            return []
+        entering = reason in _OBSTACLE and self.reason not in _OBSTACLE
+        self.reason = reason
+        self._count(f"avoid.{reason.value}")
+        if not entering:
+            return []
+        margin_m = self.value("AVOID_MARGIN")
+        text = f"RB: obstacle ahead: slowing to stop {margin_m:g} m short"
+        return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, text, now_s, key="avoid.obstacle")
+
+    def _blind(self, blind: bool, now_s: float) -> list[Outgoing]:
+        if blind == self.blind:
+            return []
+        self.blind = blind
+        self._count("avoid.sensor_silent" if blind else "avoid.sensor_back")
+        if blind:
+            text = f"RB: proximity sensor silent: crawling ({self.params.crawl_speed_m_s:g} m/s)"
+            return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, text, now_s, key="avoid.blind")
+        return self.reporter.statustext(mavlink.MAV_SEVERITY_INFO, "RB: proximity sensor back", now_s,
+                                        key="avoid.blind")
+
+
+def _aged(view: ObstacleView, speed_m_s: float) -> ObstacleView:
+    """Each obstacle `speed * age` nearer: the rover may have driven that far toward it since the reading."""
+    if speed_m_s <= 0.0:
+        return view
+    sectors = tuple(replace(s, distance_m=s.distance_m - speed_m_s * s.age_s)
+                    if s.state is SectorState.OBSTACLE and s.distance_m is not None and s.age_s else s
+                    for s in view.sectors)
+    return replace(view, sectors=sectors)
