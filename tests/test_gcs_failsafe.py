@@ -12,17 +12,16 @@ from hypothesis import strategies as st
 from test_command_core import Rig, overrides, profile, texts
 
 from rover_bridge.command.core import CommandState
-from rover_bridge.command.gcs_failsafe import (
-    PARAM_ATTEMPTS,
-    FailsafeParams,
-    GcsSilence,
-    ParamReader,
-    Phase,
-)
+from rover_bridge.command.gcs_failsafe import PARAM_NAMES, FailsafeParams, GcsSilence, Phase
+from rover_bridge.command.param_reader import PARAM_ATTEMPTS, ParamReader
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.mavlink.wire import Link, Outgoing, Reaction
 
 MANUAL, HOLD, AUTO, RTL, SMART_RTL, GUIDED = 0, 4, 10, 11, 12, 15
+
+
+def params_of(r: ParamReader) -> FailsafeParams | None:
+    return FailsafeParams.from_values(r.values)
 ON = FailsafeParams(enable=1, timeout_s=5.0)
 
 
@@ -66,13 +65,13 @@ def param_value(name: str, value: float) -> mavlink.MAVLink_param_value_message:
 
 
 def test_the_reader_asks_for_what_is_missing_a_few_times_then_stops() -> None:
-    r = ParamReader()
+    r = ParamReader(PARAM_NAMES)
     assert not r.due(0.0)
     r.restart(1.0)
     first = r.requests(1.0, 1, 1)
     assert [m.param_id for m in first] == ["FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_OPTIONS"]
     assert all(m.param_index == -1 and (m.target_system, m.target_component) == (1, 1) for m in first)
-    assert r.on_param_value(param_value("FS_GCS_ENABLE", 1.0), 1.1) and r.params == FailsafeParams(1, 5.0, 0)
+    assert r.on_param_value(param_value("FS_GCS_ENABLE", 1.0), 1.1) and params_of(r) == FailsafeParams(1, 5.0, 0)
     assert not r.on_param_value(param_value("FS_GCS_TIMEOUT", math.nan), 1.1)
     assert not r.on_param_value(param_value("X", 1), 1.1)
     assert not r.due(2.9) and r.due(3.0)
@@ -81,18 +80,18 @@ def test_the_reader_asks_for_what_is_missing_a_few_times_then_stops() -> None:
         r.requests(5.0 + 2 * k, 1, 1)
     assert not r.due(1000.0)  # PX4 has no such parameters: asked PARAM_ATTEMPTS times, then left alone
     r.on_param_value(param_value("FS_GCS_TIMEOUT", 12.5), 1000.0)
-    assert r.params == FailsafeParams(1, 12.5, 0)
+    assert params_of(r) == FailsafeParams(1, 12.5, 0)
 
 
 def test_a_value_that_changes_or_comes_unasked_is_asked_again_and_the_autopilots_answer_replaces_it() -> None:
-    r = ParamReader()
+    r = ParamReader(PARAM_NAMES)
     r.restart(0.0)
     r.requests(0.0, 1, 1)
     for name, value in (("FS_GCS_ENABLE", 1.0), ("FS_GCS_TIMEOUT", 5.0), ("FS_OPTIONS", 0.0)):
         r.on_param_value(param_value(name, value), 0.05)  # the answers: taken, nothing more to ask
-    assert r.params == FailsafeParams(1, 5.0, 0) and r.requests(2.0, 1, 1) == [] and not r.due(1000.0)
+    assert params_of(r) == FailsafeParams(1, 5.0, 0) and r.requests(2.0, 1, 1) == [] and not r.due(1000.0)
     r.on_param_value(param_value("FS_GCS_TIMEOUT", 0.0), 10.0)  # one frame (a corrupted one?) changes it
-    assert r.params == FailsafeParams(1, 0.0, 0)  # taken at once (a GCS's PARAM_SET must act) ...
+    assert params_of(r) == FailsafeParams(1, 0.0, 0)  # taken at once (a GCS's PARAM_SET must act) ...
     assert r.due(10.0) and [m.param_id for m in r.requests(10.0, 1, 1)] == ["FS_GCS_TIMEOUT"]  # ... and asked
     r.on_param_value(param_value("FS_GCS_TIMEOUT", 7.0), 10.01)  # another change before the answer
     assert not r.due(10.09) and r.due(10.1)  # asked again, no sooner than PARAM_CONFIRM_S after the last request
@@ -100,21 +99,21 @@ def test_a_value_that_changes_or_comes_unasked_is_asked_again_and_the_autopilots
     r.on_param_value(param_value("FS_GCS_TIMEOUT", 5.0), 10.12)  # the autopilot's answer: a change, asked again
     assert [m.param_id for m in r.requests(10.22, 1, 1)] == ["FS_GCS_TIMEOUT"]
     r.on_param_value(param_value("FS_GCS_TIMEOUT", 5.0), 10.24)  # said twice: confirmed
-    assert r.params == FailsafeParams(1, 5.0, 0) and r.requests(12.22, 1, 1) == [] and not r.due(1000.0)
+    assert params_of(r) == FailsafeParams(1, 5.0, 0) and r.requests(12.22, 1, 1) == [] and not r.due(1000.0)
 
 
 def test_a_value_the_autopilot_does_not_confirm_is_dropped() -> None:
-    r = ParamReader()
+    r = ParamReader(PARAM_NAMES)
     r.restart(0.0)
     for k in range(PARAM_ATTEMPTS + 1):
         r.requests(2.0 * k, 1, 1)  # an autopilot with no such parameters (PX4): no answer, asking stops
-    assert r.params is None and not r.due(1000.0)
+    assert params_of(r) is None and not r.due(1000.0)
     r.on_param_value(param_value("FS_GCS_ENABLE", 1.0), 100.0)  # unasked: a forged or corrupted frame
-    assert r.params == FailsafeParams(1, 5.0, 0) and r.due(100.0)
+    assert params_of(r) == FailsafeParams(1, 5.0, 0) and r.due(100.0)
     for k in range(PARAM_ATTEMPTS):
         assert [m.param_id for m in r.requests(100.0 + 2.0 * k, 1, 1)] == ["FS_GCS_ENABLE", "FS_GCS_TIMEOUT",
                                                                           "FS_OPTIONS"]
-    assert r.requests(106.0, 1, 1) == [] and r.params is None and not r.due(1000.0)  # not said again: dropped
+    assert r.requests(106.0, 1, 1) == [] and params_of(r) is None and not r.due(1000.0)  # not said again: dropped
 
 
 def test_a_silence_that_the_parameters_no_longer_call_for_ends() -> None:

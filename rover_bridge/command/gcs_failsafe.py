@@ -10,7 +10,7 @@ failsafe from ever firing. So the bridge watches the GCS itself, as ArduPilot wo
   heartbeat comes back after a gap or a reboot; a PARAM_VALUE for them at any time, e.g. after a GCS's
   PARAM_SET, is taken too, and one that changes a value, or comes unasked, is asked for again: a single frame
   (a corrupted or forged one: FS_GCS_TIMEOUT 0 would pause the overrides for good) lasts only until the
-  autopilot's answer replaces it, and a value the autopilot does not confirm in PARAM_ATTEMPTS requests is
+  autopilot's answer replaces it, and a value the autopilot does not confirm in a few requests is
   dropped);
 - the GCS is seen by a HEARTBEAT or MANUAL_CONTROL from the override's system id;
 - with FS_GCS_ENABLE set, once the GCS has been seen and then silent for FS_GCS_TIMEOUT, in a mode where ArduPilot
@@ -37,6 +37,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from rover_bridge.command.param_reader import ParamReader
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.identity import Identity
 from rover_bridge.mavlink.report import Reporter
@@ -53,9 +54,6 @@ CONTINUE_MISSION = 2  # FS_GCS_ENABLE 2: "Enabled Continue with Mission in Auto"
 # the real SITL: the GCS failsafe said "Radio Failsafe"). Either means the autopilot acted and cleared overrides.
 AUTOPILOT_FAILSAFE_TEXTS = frozenset({"GCS Failsafe", "Radio Failsafe"})
 PARAM_NAMES = ("FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_OPTIONS")
-PARAM_RETRY_S = 2.0
-PARAM_ATTEMPTS = 3  # an autopilot with no such parameters (PX4) answers nothing: stop asking
-PARAM_CONFIRM_S = 0.1  # a changed value is asked for again no sooner than this after the last request
 
 
 @dataclass(frozen=True)
@@ -74,76 +72,12 @@ class FailsafeParams:
             return False
         return not (mode == ROVER_AUTO and self.enable == CONTINUE_MISSION)
 
-
-class ParamReader:
-    """PARAM_REQUEST_READ for `names` until each is answered (a few attempts); PARAM_VALUEs taken any time, and
-    asked for again when one changes a value or comes unasked, until two in a row agree (module doc). The GCS
-    failsafe reads PARAM_NAMES; simple avoidance reads its AVOID_* with the same rules."""
-
-    def __init__(self, names: tuple[str, ...] = PARAM_NAMES) -> None:
-        self.names = names
-        self.values: dict[str, float] = {}
-        self._attempts = 0
-        self._next_s: float | None = None
-        self._asked_s = -math.inf
-        self._unconfirmed: set[str] = set()  # taken from a PARAM_VALUE that changed the value: asked for again
-
-    @property
-    def params(self) -> FailsafeParams | None:
-        """None until FS_GCS_ENABLE is known (nothing to watch before)."""
-        v = self.values
-        if "FS_GCS_ENABLE" not in v:
+    @classmethod
+    def from_values(cls, values: dict[str, float]) -> FailsafeParams | None:
+        """From the values a ParamReader holds; None until FS_GCS_ENABLE is known (nothing to watch before)."""
+        if "FS_GCS_ENABLE" not in values:
             return None
-        return FailsafeParams(int(v["FS_GCS_ENABLE"]), v.get("FS_GCS_TIMEOUT", 5.0), int(v.get("FS_OPTIONS", 0)))
-
-    def confirmed(self, name: str) -> float | None:
-        """The value the autopilot has said (an answer to a request, or said twice); None while unknown or while
-        a lone unasked PARAM_VALUE that changed it waits for the autopilot's word."""
-        return None if name in self._unconfirmed else self.values.get(name)
-
-    def restart(self, now_s: float) -> None:
-        """Ask again from now (a first heartbeat, or the autopilot back after a gap or a reboot)."""
-        self.values.clear()
-        self._unconfirmed.clear()
-        self._attempts, self._next_s = 0, now_s
-
-    def due(self, now_s: float) -> bool:
-        return self._next_s is not None and now_s >= self._next_s
-
-    def requests(self, now_s: float, target_system: int, target_component: int) -> list[MAVLinkMessage]:
-        missing = [name for name in self.names if name not in self.values or name in self._unconfirmed]
-        if not missing or self._attempts >= PARAM_ATTEMPTS:
-            for name in self._unconfirmed:  # not the autopilot's word: it did not say it again when asked
-                del self.values[name]
-            self._unconfirmed.clear()
-            self._next_s = None
-            return []
-        self._attempts += 1
-        self._next_s = now_s + PARAM_RETRY_S
-        self._asked_s = now_s
-        return [mavlink.MAVLink_param_request_read_message(target_system, target_component, name.encode(), -1)
-                for name in missing]
-
-    def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> bool:
-        """Take a PARAM_VALUE; True if it was one of ours and changed nothing unusable."""
-        name = msg.param_id
-        if isinstance(name, bytes):
-            name = name.decode("ascii", "replace")
-        name = str(name).rstrip("\x00")
-        value = float(msg.param_value)
-        if name not in self.names or not math.isfinite(value):
-            return False
-        old = self.values.get(name)
-        self.values[name] = value
-        if old == value:
-            self._unconfirmed.discard(name)  # said twice: the autopilot's (an answer, or its repeat)
-        elif old is not None or self._next_s is None:
-            # Changed, or unasked: one frame, maybe a corrupted or forged one. The autopilot's answer replaces it.
-            self._unconfirmed.add(name)
-            self._attempts = 0
-            soon = max(now_s, self._asked_s + PARAM_CONFIRM_S)
-            self._next_s = soon if self._next_s is None else min(self._next_s, soon)
-        return True
+        return cls(int(values["FS_GCS_ENABLE"]), values.get("FS_GCS_TIMEOUT", 5.0), int(values.get("FS_OPTIONS", 0)))
 
 
 class Phase(enum.Enum):
@@ -218,7 +152,7 @@ class GcsFailsafeWatch:
         self.reporter = reporter
         self.active = overrides  # only overrides mask the failsafe (servo mode sends none)
         self._count = count
-        self.reader = ParamReader()
+        self.reader = ParamReader(PARAM_NAMES)
         self.silence = GcsSilence()
 
     def autopilot_back(self, now_s: float) -> None:
@@ -231,13 +165,13 @@ class GcsFailsafeWatch:
         if not self.reader.due(now_s) or vehicle is None:
             return []
         msgs = self.reader.requests(now_s, vehicle, self.identity.autopilot_component_id)
-        self.silence.rearm(self.reader.params)  # an unconfirmed value may have been dropped
+        self.silence.rearm(FailsafeParams.from_values(self.reader.values))  # an unconfirmed value may have been dropped
         return [Outgoing(Link.AUTOPILOT, m, self.identity.own_system_id, self.identity.component_id) for m in msgs]
 
     def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> list[Outgoing]:
         if not self.active or not self._from_autopilot(msg) or not self.reader.on_param_value(msg, now_s):
             return []
-        params = self.reader.params
+        params = FailsafeParams.from_values(self.reader.values)
         self.silence.rearm(params)
         if params is None or self.reader.values.keys() != set(PARAM_NAMES):
             return []
@@ -260,11 +194,11 @@ class GcsFailsafeWatch:
         """A HEARTBEAT or MANUAL_CONTROL from a ground station: True if it ends a silence."""
         if not self.active or msg.get_srcSystem() != self.identity.override_source_system:
             return False
-        return self.silence.seen(now_s, self.reader.params)
+        return self.silence.seen(now_s, FailsafeParams.from_values(self.reader.values))
 
     def silent(self, now_s: float, mode: int | None) -> bool:
         was = self.silence.phase
-        now_silent = self.silence.silent(now_s, mode, self.reader.params)
+        now_silent = self.silence.silent(now_s, mode, FailsafeParams.from_values(self.reader.values))
         if now_silent and was is not Phase.SILENT:
             self._count("gcs_failsafe.silent")
         return now_silent

@@ -9,10 +9,11 @@ in it itself), nor is MANUAL unless [avoidance] in_manual (ArduPilot does not av
   feeds one `ObstaclePicture`, with ATTITUDE's yaw for earth-frame scans. Nothing is built, asked or changed
   until the first such message: a rover without range sensors drives exactly as before.
 - Parameters: AVOID_ENABLE (bit 1: proximity), AVOID_MARGIN and AVOID_BACKUP_SPD are read from the autopilot
-  (PARAM_REQUEST_READ once a sensor is seen, and after the autopilot comes back), with the GCS failsafe's
-  ParamReader. Until the autopilot has said them ArduPilot's defaults apply (AVOID_ENABLE 3, AVOID_MARGIN 2):
-  avoiding with the defaults is the safe side of not knowing. A lone unasked PARAM_VALUE is used only once the
-  autopilot confirms it (a forged AVOID_ENABLE 0 must not switch avoidance off).
+  (PARAM_REQUEST_READ once a sensor is seen, and after the autopilot comes back) by the ParamReader the GCS
+  failsafe uses (rover_bridge.command.param_reader). Until the autopilot has said them ArduPilot's defaults
+  apply (AVOID_ENABLE 3, AVOID_MARGIN 2): avoiding with the defaults is the safe side of not knowing. A lone
+  unasked PARAM_VALUE is used only once the autopilot confirms it (a forged AVOID_ENABLE 0 must not switch
+  avoidance off).
 - The rule: the stopping speed at half the profile's max_linear_decel_m_s2, as Rover uses half ATC_DECEL_MAX
   (brakes earlier and gentler: room for a rover that brakes worse than its profile), after the reaction delay
   plus one output period. A reading `age_s` old is taken `|v| * age_s` nearer (the rover has moved since).
@@ -27,8 +28,8 @@ from collections.abc import Callable
 from dataclasses import replace
 
 from rover_bridge.command.avoidance import AvoidReason, AvoidSettings, Limited, limit_velocity
-from rover_bridge.command.gcs_failsafe import ParamReader
 from rover_bridge.command.obstacles import ObstaclePicture, ObstacleView, SectorState
+from rover_bridge.command.param_reader import ParamReader
 from rover_bridge.command.vehicle import VehicleState
 from rover_bridge.kinematics import Twist2D
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink

@@ -50,7 +50,7 @@ map (the measured curve where the profile has one: the feedforward).
   encoder_timeout_s (the first after a silence) is the mean over the silence: the window starts
   again. Encoders silent for encoder_timeout_s are stale (`closed` False: the core says so once).
 - Slip (the estimator's verdict): the integrators are frozen (slipping wheels read too fast).
-- Stall: a wheel below STALL_FRACTION of its target for STALL_S while commanded beyond
+- Stall: a wheel below STILL_FRACTION of its target while commanded beyond
   BREAKAWAY_FRACTION of its top speed is held (stalled or jammed): the integrators stop and the reference
   model starts again from the measured speeds, so when it is released it spins up to the steady command,
   not a wound-up one. Below that command a still wheel is
@@ -74,8 +74,6 @@ from rover_bridge.kinematics import MeasuredWheels, WheelSpeeds
 from rover_bridge.params import ControlParams
 
 STILL_FRACTION = 0.1  # measured below this fraction of the target: the wheel does not turn
-STALL_FRACTION = 0.1  # the loop: a wheel below this fraction of its target, commanded past the breakaway,
-STALL_S = 0.0  # ... for this long: the loop treats it as stalled (integrators held)
 BREAKAWAY_FRACTION = 0.4  # ... while commanded at least this fraction of its top speed (below: a deadband to find)
 BACKWARDS_FRACTION = 0.2  # measured at least this fraction of the target, opposite sign: wrong way
 SWAP_TOLERANCE = 0.3  # each wheel within this fraction of the other's target: swapped
@@ -204,7 +202,6 @@ class WheelSpeedLoop:
         self.reference = ReferenceModel((params.reference_s, params.turn_reference_s))
         self.integral = [0.0, 0.0]  # (common, turn)
         self._learnt_at = [0.0, 0.0]  # the wheel targets the integrators last learnt at (what a hold scales by)
-        self._still_since: list[float | None] = [None, None]
         self.measured: WheelSpeeds | None = None
         self._measured_s: float | None = None  # arrival time of the last sample (the caller's clock)
 
@@ -235,7 +232,6 @@ class WheelSpeedLoop:
         self.reference.reset()  # starts from the measured speeds on the next command
         self._last = None
         self._running_s = 0.0
-        self._still_since = [None, None]
 
     def command(self, target: WheelSpeeds, dt_s: float, now_s: float, pre_scaled: bool = False,
                 freeze: bool = False) -> LoopResult:
@@ -253,7 +249,7 @@ class WheelSpeedLoop:
         if self.reference.value is None:  # the wheels are where they are: no error to correct yet
             self.reference.start(to_modes(*speeds), now_s - dt_s)
         self.reference.follow(modes, dt_s, now_s)
-        held = self._stalled(targets, speeds, now_s)
+        held = self._stalled(targets, speeds)
         if any(held):  # the reference starts again from where the wheels are: released, no error piled up
             self.reference.start(to_modes(*speeds), now_s)
         # The measurement stands for the middle of the span it averages, when it arrived minus half of it.
@@ -283,20 +279,15 @@ class WheelSpeedLoop:
         self._last = list(u)
         return LoopResult(WheelSpeeds(u[0], u[1]), saturated, True)
 
-    def _stalled(self, targets: tuple[float, float], speeds: tuple[float, float], now_s: float) -> list[bool]:
-        """Which wheels have been below STALL_FRACTION of their target for STALL_S, past the breakaway command."""
-        held = [False, False]
+    def _stalled(self, targets: tuple[float, float], speeds: tuple[float, float]) -> list[bool]:
+        """Which wheels are below STILL_FRACTION of their target while commanded past the breakaway."""
         last = self._last or [0.0, 0.0]
+        held = [False, False]
         for k in (0, 1):
             # Still while its command is past what starts a wheel (a deadband, a curved map at low speed): the
             # integrator must be free to find that command; beyond it, a still wheel is jammed.
             top = self.ranges[k][1] if targets[k] > 0.0 else -self.ranges[k][0]
-            if abs(speeds[k]) < STALL_FRACTION * abs(targets[k]) and abs(last[k]) >= BREAKAWAY_FRACTION * top:
-                since = self._still_since[k]
-                self._still_since[k] = since = now_s if since is None else since
-                held[k] = now_s - since >= STALL_S
-            else:
-                self._still_since[k] = None
+            held[k] = abs(speeds[k]) < STILL_FRACTION * abs(targets[k]) and abs(last[k]) >= BREAKAWAY_FRACTION * top
         return held
 
     def _slew(self, u: list[float], dt_s: float) -> list[float]:
@@ -319,7 +310,6 @@ class WheelSpeedLoop:
             learnt = self._learnt_at[k]
             ratio = max(-1.0, min(1.0, targets[k] / learnt)) if learnt != 0.0 else 0.0
             u.append(targets[k] + correction * ratio)
-        self._still_since = [None, None]
         command, saturated = self._limit(u, targets, pre_scaled)
         self._last = list(command)
         return LoopResult(WheelSpeeds(command[0], command[1]), saturated, fresh)
