@@ -29,6 +29,16 @@ def test_every_shipped_profile_loads_and_round_trips(path: Path) -> None:
     assert profile_from_dict(tomllib.loads(profile_to_toml(profile))) == profile
 
 
+LOOP_GAINS = {"kp", "ki_1_s", "reference_s", "turn_kp", "turn_ki_1_s", "turn_reference_s"}
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=[p.name for p in SHIPPED])
+def test_no_shipped_profile_sets_loop_gains(path: Path) -> None:
+    # Issue 42: the loop's defaults hold on every plant; gains come from `calibrate`, not from a profile.
+    control = tomllib.loads(path.read_text(encoding="utf-8")).get("control", {})
+    assert not LOOP_GAINS & set(control), sorted(LOOP_GAINS & set(control))
+
+
 def test_default_profile_is_the_small_indoor_rover() -> None:
     r = load_profile(PARAMS_DIR / "default.toml").robot
     assert (r.wheel_radius_m, r.track_width_m, r.max_wheel_rpm) == (0.05, 0.30, 200.0)
