@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import itertools
 import math
 import tomllib
@@ -755,7 +756,13 @@ PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
 
 def packaged_profiles() -> list[str]:
     """Names of the packaged profiles (``default``, ``ardupilot-sitl-skid``): what ``--params NAME`` takes."""
-    return sorted(p.stem for p in PROFILES_DIR.glob("*.toml"))
+    return list(_packaged_names())
+
+
+@functools.cache
+def _packaged_names() -> tuple[str, ...]:
+    # Listed once: the package's files do not change while it runs, and every command line's parser names them.
+    return tuple(sorted(p.stem for p in PROFILES_DIR.glob("*.toml")))
 
 
 def find_profile(name_or_path: str | Path) -> Path:

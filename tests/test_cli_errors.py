@@ -284,15 +284,20 @@ def test_what_the_user_may_not_read_or_write(shared_dir: Path, capsys: pytest.Ca
     writable.chmod(0o777)
     main(["check-params", DEFAULT])  # everything imported before the ids change (the venv may be root's only)
     capsys.readouterr()
+    # The profile from the shared folder: the checkout itself may sit in a folder only its owner may enter.
+    profile = shared_dir / "profile.toml"
+    profile.write_text(Path(DEFAULT).read_text(encoding="utf-8"), encoding="utf-8")
+    profile.chmod(0o644)
+    p = ["--params", str(profile)]
     with as_an_ordinary_user():
         cases = {
-            f"{log}: cannot read the log (Permission denied)": ["replay", str(log), "--csv", str(writable / "r")],
+            f"{log}: cannot read the log (Permission denied)": ["replay", str(log), *p, "--csv", str(writable / "r")],
             f"--csv {read_only}/x.csv: cannot create a file in folder {read_only} (permission denied)":
-                ["replay", str(readable), "--csv", f"{read_only}/x.csv"],
+                ["replay", str(readable), *p, "--csv", f"{read_only}/x.csv"],
             f"--csv {existing}: cannot write the file (permission denied)":
-                ["replay", str(readable), "--csv", str(existing)],
+                ["replay", str(readable), *p, "--csv", str(existing)],
             f"--tlog {read_only}/a.tlog: cannot create a file in folder {read_only} (permission denied)":
-                ["run", "--autopilot", "udpout:127.0.0.1:9", "--gcs", "none", "--tlog", f"{read_only}/a.tlog"],
+                ["run", *p, "--autopilot", "udpout:127.0.0.1:9", "--gcs", "none", "--tlog", f"{read_only}/a.tlog"],
         }
         lines = {message: one_line(capsys, argv) for message, argv in cases.items()}
         folder = output_folder_problem(read_only / "report", "--out")
