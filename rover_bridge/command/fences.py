@@ -36,11 +36,13 @@ def ne_from_lat_lon(origin_lat_deg: float, origin_lon_deg: float, lat_deg: float
 
 @dataclass(frozen=True, slots=True)
 class CircleFence:
-    """FENCE_RADIUS around home (the origin)."""
+    """FENCE_RADIUS around home (the origin), or a circle of the stored fence: inclusion (stay inside) or
+    exclusion (stay outside)."""
 
     radius_m: float
     center_north_m: float = 0.0
     center_east_m: float = 0.0
+    inclusion: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,6 +66,7 @@ class Fences:
     margin_m: float
     circle: CircleFence | None = None
     polygons: tuple[PolygonFence, ...] = ()
+    circles: tuple[CircleFence, ...] = ()  # the stored fence's inclusion and exclusion circles
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,6 +132,8 @@ def ray_circle_exit_m(north_m: float, east_m: float, dir_north: float, dir_east:
 
 def _circle(fence: CircleFence, margin_m: float, north_m: float, east_m: float, dn: float,
             de: float) -> FenceClearance:
+    if not fence.inclusion:
+        return _exclusion_circle(fence, margin_m, north_m, east_m, dn, de)
     if margin_m > fence.radius_m:
         return FenceClearance(None)  # as AC_Avoid: a margin wider than the fence disables it
     pn, pe = north_m - fence.center_north_m, east_m - fence.center_east_m
@@ -147,6 +152,22 @@ def _circle(fence: CircleFence, margin_m: float, north_m: float, east_m: float, 
     return FenceClearance(ray_circle_exit_m(pn, pe, dn, de, inner_m), breached)
 
 
+def _exclusion_circle(fence: CircleFence, margin_m: float, north_m: float, east_m: float, dn: float,
+                      de: float) -> FenceClearance:
+    """Stay outside the circle widened by the margin: the distance along the ray to where it enters that; inside the
+    circle itself (breached) only motion away from the centre passes, inside the margin's ring the same stops."""
+    pn, pe = north_m - fence.center_north_m, east_m - fence.center_east_m
+    dist = math.hypot(pn, pe)
+    b = pn * dn + pe * de
+    outer_m = fence.radius_m + margin_m
+    if dist <= outer_m:
+        return FenceClearance(None if b > 0.0 else 0.0, breached=dist < fence.radius_m)
+    disc = b * b - (dist * dist - outer_m * outer_m)
+    if b >= 0.0 or disc < 0.0:
+        return FenceClearance(None)  # moving away, or the ray misses it
+    return FenceClearance(-b - math.sqrt(disc))
+
+
 def _polygon(fence: PolygonFence, margin_m: float, north_m: float, east_m: float, dn: float,
              de: float) -> FenceClearance:
     if len(fence.points_ne) < 3:
@@ -162,7 +183,43 @@ def fence_clearance(fences: Fences, north_m: float, east_m: float, travel_cw_rad
     """The tightest clearance over every fence for travel from (north, east) toward `travel_cw_rad`."""
     dn, de = math.cos(travel_cw_rad), math.sin(travel_cw_rad)
     parts = [_polygon(p, fences.margin_m, north_m, east_m, dn, de) for p in fences.polygons]
-    if fences.circle is not None:
-        parts.append(_circle(fences.circle, fences.margin_m, north_m, east_m, dn, de))
+    circles = fences.circles if fences.circle is None else (fences.circle, *fences.circles)
+    parts += [_circle(c, fences.margin_m, north_m, east_m, dn, de) for c in circles]
     distances = [p.distance_m for p in parts if p.distance_m is not None]
     return FenceClearance(min(distances) if distances else None, any(p.breached for p in parts))
+
+
+POLYGON_INCLUSION = 5001  # MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION: param1 = the polygon's vertex count
+POLYGON_EXCLUSION = 5002
+CIRCLE_INCLUSION = 5003  # MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION: param1 = radius m
+CIRCLE_EXCLUSION = 5004
+
+
+def stored_fences(items: Sequence[tuple[int, float, float, float]], origin_lat_deg: float,
+                  origin_lon_deg: float) -> tuple[tuple[PolygonFence, ...], tuple[CircleFence, ...]]:
+    """The polygons and circles of a downloaded fence, items as (command, param1, lat deg, lon deg), flattened about
+    the origin (home). A polygon is its first vertex's param1 items of the same command in a row (as ArduPilot's
+    AC_PolyFence_loader reads them); a short or broken run is dropped; the return point (5000) is not a fence."""
+    polygons: list[PolygonFence] = []
+    circles: list[CircleFence] = []
+    i = 0
+    while i < len(items):
+        command, param1, lat, lon = items[i]
+        if command in (CIRCLE_INCLUSION, CIRCLE_EXCLUSION):
+            if param1 > 0.0:
+                north, east = ne_from_lat_lon(origin_lat_deg, origin_lon_deg, lat, lon)
+                circles.append(CircleFence(param1, north, east, inclusion=command == CIRCLE_INCLUSION))
+            i += 1
+            continue
+        if command not in (POLYGON_INCLUSION, POLYGON_EXCLUSION):
+            i += 1
+            continue
+        count = int(param1)
+        run = items[i:i + count]
+        if count >= 3 and len(run) == count and all(item[0] == command for item in run):
+            polygons.append(PolygonFence.from_lat_lon([(item[2], item[3]) for item in run], origin_lat_deg,
+                                                      origin_lon_deg, inclusion=command == POLYGON_INCLUSION))
+            i += count
+        else:
+            i += 1
+    return tuple(polygons), tuple(circles)
