@@ -1,16 +1,18 @@
-"""Simple avoidance in the command flow (pure): the bridge's own drivers stop AVOID_MARGIN short of obstacles.
+"""Simple avoidance in the command flow (pure): the bridge's own drivers stop AVOID_MARGIN short of obstacles
+and FENCE_MARGIN inside fences.
 
 The gate sits between the safety gates and the output stage (rover_bridge.command.arbiter): the twist a GCS
-velocity request, MANUAL_CONTROL or a position target wants has its speed toward an obstacle capped by
+velocity request, MANUAL_CONTROL or a position target wants has its speed toward an obstacle or fence capped by
 `avoidance.limit_velocity` before the limiter. The autopilot's own navigation is not touched (ArduPilot avoids
 in it itself), nor is MANUAL unless [avoidance] in_manual (ArduPilot does not avoid in MANUAL).
 
 - Picture: every DISTANCE_SENSOR and OBSTACLE_DISTANCE from the vehicle's system (any component, either link)
-  feeds one `ObstaclePicture`, with ATTITUDE's yaw for earth-frame scans. Nothing is built, asked or changed
-  until the first such message: a rover without range sensors drives exactly as before.
-- Parameters: AVOID_ENABLE (bit 1: proximity), AVOID_MARGIN and AVOID_BACKUP_SPD are read from the autopilot
-  (PARAM_REQUEST_READ once a sensor is seen, and after the autopilot comes back) by the ParamReader the GCS
-  failsafe uses (rover_bridge.command.param_reader). Until the autopilot has said them ArduPilot's defaults
+  feeds one `ObstaclePicture`, with ATTITUDE's yaw for earth-frame scans. No picture is built and nothing
+  changed until the first such message: a rover without range sensors or fences drives exactly as before.
+- Fences: rover_bridge.command.fence_watch (FENCE_* as read here, home, the downloaded fence, the rover's place).
+- Parameters: AVOID_ENABLE (bit 1: proximity, bit 0: fences), AVOID_MARGIN, AVOID_BACKUP_SPD and FENCE_* are read
+  from the autopilot (PARAM_REQUEST_READ at its first heartbeat, and after it comes back) by the ParamReader the
+  GCS failsafe uses (rover_bridge.command.param_reader). Until the autopilot has said them ArduPilot's defaults
   apply (AVOID_ENABLE 3, AVOID_MARGIN 2): avoiding with the defaults is the safe side of not knowing. A lone
   unasked PARAM_VALUE is used only once the autopilot confirms it (a forged AVOID_ENABLE 0 must not switch
   avoidance off).
@@ -18,7 +20,8 @@ in it itself), nor is MANUAL unless [avoidance] in_manual (ArduPilot does not av
   (brakes earlier and gentler: room for a rover that brakes worse than its profile), after the reaction delay
   plus one output period. A reading `age_s` old is taken `|v| * age_s` nearer (the rover has moved since).
   AVOID_BACKUP_SPD is read and reported by the limiter, not applied: the bridge only lowers a request.
-- Blind: a sensor seen and then silent caps the speed at crawl_speed_m_s in every direction, said once.
+- Blind: a sensor seen and then silent caps the speed at crawl_speed_m_s in every direction, said once; so does a
+  fence that is on while the rover cannot be placed on it.
 - What it does is said by STATUSTEXT on each change (rate-limited) and counted (`avoid.*`, in --stats-json).
 """
 
