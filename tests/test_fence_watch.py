@@ -206,6 +206,9 @@ def test_the_circle_fence_caps_the_bridges_drivers_once_home_is_known_and_crawls
     assert rig.core.commanded.v_m_s == pytest.approx(0.2)
     assert "RB: fence on, position unknown: crawling (0.2 m/s)" in texts(rig.sent)
     assert home_requests(rig.tick(2.1)) == 1  # asked again until it comes
+    ack = mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED, 0, 0,
+                                              *US)
+    assert rig.feed(Link.AUTOPILOT, rig.wire(rig.ap, ack), 2.15).consumed  # its answer is the bridge's own
     rig.home(2.2)
     rig.at(0.0, 2.3)
     assert overrides(rig.local(2.31, vx=0.5, mask=3527).out) == [(1739, 1739)]  # 10 m of room: full speed
