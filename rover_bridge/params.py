@@ -414,9 +414,9 @@ class SecurityParams:
 class AvoidanceParams:
     enabled: bool = _p(
         True, "Slow the bridge's own drivers (GCS velocity requests, MANUAL_CONTROL, position targets) so the "
-        "rover stops AVOID_MARGIN short of what the vehicle's DISTANCE_SENSOR / OBSTACLE_DISTANCE show, as "
-        "ArduPilot's simple avoidance does (AVOID_ENABLE, AVOID_MARGIN read from the autopilot); nothing changes "
-        "until such a message is seen.")
+        "rover stops AVOID_MARGIN short of what the vehicle's DISTANCE_SENSOR / OBSTACLE_DISTANCE show and "
+        "FENCE_MARGIN inside the autopilot's fences, as ArduPilot's simple avoidance does (AVOID_* and FENCE_* "
+        "read from the autopilot); nothing changes without a range sensor or an enabled fence.")
     in_manual: bool = _p(False, "Avoid in MANUAL too (ArduPilot does not avoid in MANUAL).")
     crawl_speed_m_s: float = _p(
         0.2, "While a range sensor that was seen is silent (sensor_timeout_s), the speed in any direction is "

@@ -1,21 +1,24 @@
-"""Fence geometry: ray casting against polygons, the circle fence, breached fences (hand-computed)."""
+"""Fence geometry: the edges of polygons as walls, the circle fence, breached fences (hand-computed), and a property:
+an oblique approach still stops the margin from every edge."""
 
 from __future__ import annotations
 
 import math
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rover_bridge.command.fences import (
     CircleFence,
     FenceClearance,
     Fences,
     PolygonFence,
+    edge_travel_m,
     fence_clearance,
     inside_polygon,
     ne_from_lat_lon,
     nearest_boundary_vector,
-    ray_polygon_distance_m,
 )
 
 SQUARE = ((0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0))  # north 0..10, east 0..10
@@ -30,15 +33,14 @@ def test_point_in_polygon() -> None:
     assert not inside_polygon(2.0, 8.0, concave) and inside_polygon(8.0, 8.0, concave)
 
 
-def test_ray_polygon_distances() -> None:
-    assert ray_polygon_distance_m(5.0, 5.0, 1.0, 0.0, SQUARE) == pytest.approx(5.0)
-    assert ray_polygon_distance_m(2.0, 5.0, -1.0, 0.0, SQUARE) == pytest.approx(2.0)
+def test_edge_travel_takes_each_edge_as_a_wall_square_to_its_closest_point() -> None:
+    assert edge_travel_m(5.0, 5.0, 1.0, 0.0, SQUARE, 1.0) == pytest.approx(4.0)
+    assert edge_travel_m(2.0, 5.0, -1.0, 0.0, SQUARE, 0.0) == pytest.approx(2.0)
     c = math.sqrt(0.5)
-    assert ray_polygon_distance_m(5.0, 5.0, c, c, SQUARE) == pytest.approx(5.0 * math.sqrt(2.0))
-    assert ray_polygon_distance_m(2.0, 5.0, c, c, SQUARE) == pytest.approx(5.0 * math.sqrt(2.0))  # hits east side
-    assert ray_polygon_distance_m(-5.0, 5.0, 1.0, 0.0, SQUARE) == pytest.approx(5.0)  # from outside: entering
-    assert ray_polygon_distance_m(-5.0, 5.0, -1.0, 0.0, SQUARE) is None
-    assert ray_polygon_distance_m(5.0, 0.0, 1.0, 0.0, SQUARE) is not None  # along the west edge: the north edge
+    assert edge_travel_m(5.0, 5.0, c, c, SQUARE, 1.0) == pytest.approx(4.0 / c)  # the corner: 4 m square to each edge
+    assert edge_travel_m(2.0, 5.0, c, c, SQUARE, 1.0) == pytest.approx(4.0 / c)  # east edge (5 m) before north (8 m)
+    assert edge_travel_m(5.0, 0.5, 1.0, 0.0, SQUARE, 1.0) == pytest.approx(4.0)  # along the west edge: the north one
+    assert edge_travel_m(5.0, 5.0, 1.0, 0.0, ((0.0, 0.0), (0.0, 10.0), (-1.0, 5.0)), 1.0) is None  # all behind
     assert nearest_boundary_vector(5.0, 2.0, SQUARE) == pytest.approx((0.0, -2.0))
     assert nearest_boundary_vector(12.0, 12.0, SQUARE) == pytest.approx((-2.0, -2.0))
 
@@ -89,7 +91,10 @@ def test_exclusion_polygon() -> None:
     fences = Fences(margin_m=1.0, polygons=(keep_out,))
     assert fence_clearance(fences, 5.0, 5.0, NORTH) == FenceClearance(pytest.approx(14.0))
     assert fence_clearance(fences, 5.0, 5.0, SOUTH) == FenceClearance(None)
-    assert fence_clearance(fences, 5.0, 5.0, EAST) == FenceClearance(None)
+    # Passing east of it: its corner (20, 10) is a wall square to the line to it, 46.8 m of travel away: no cap
+    # that matters (AC_Avoid's way; it never comes nearer than 15 m).
+    p = math.hypot(15.0, 5.0)
+    assert fence_clearance(fences, 5.0, 5.0, EAST) == FenceClearance(pytest.approx((p - 1.0) * p / 5.0))
     assert fence_clearance(fences, 22.0, 5.0, SOUTH) == FenceClearance(None, True)  # nearest way out
     assert fence_clearance(fences, 22.0, 5.0, NORTH) == FenceClearance(0.0, True)
 
@@ -101,3 +106,16 @@ def test_the_tightest_fence_wins() -> None:
     assert fence_clearance(fences, 0.0, 0.0, SOUTH).distance_m == pytest.approx(10.0)
     assert fence_clearance(Fences(margin_m=1.0, polygons=(PolygonFence(((0.0, 0.0), (1.0, 1.0))),)),
                            0.0, 0.0, NORTH) == FenceClearance(None)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.floats(1.0, 9.0), st.floats(1.0, 9.0), st.floats(-math.pi, math.pi), st.floats(0.0, 1.0))
+def test_travel_as_allowed_never_ends_inside_the_margin_of_a_convex_fence(north_m: float, east_m: float,
+                                                                          heading: float, margin_m: float) -> None:
+    fences = Fences(margin_m=margin_m, polygons=(PolygonFence(SQUARE),))
+    clearance = fence_clearance(fences, north_m, east_m, heading)
+    assert clearance.distance_m is not None  # inside a closed square every direction meets an edge
+    end_n = north_m + clearance.distance_m * math.cos(heading)
+    end_e = east_m + clearance.distance_m * math.sin(heading)
+    start_gap = min(north_m, 10.0 - north_m, east_m, 10.0 - east_m)
+    assert min(end_n, 10.0 - end_n, end_e, 10.0 - end_e) >= min(margin_m, start_gap) - 1e-6

@@ -184,18 +184,24 @@ class FsRig(Rig):
             + self.param(t, "FS_OPTIONS", options)
 
 
+def fs_read(o: Outgoing) -> bool:
+    """A PARAM_REQUEST_READ of the failsafe's (avoidance reads AVOID_* and FENCE_* beside them)."""
+    return o.msg.get_type() == "PARAM_REQUEST_READ" and o.msg.param_id in PARAM_NAMES
+
+
 def kinds(out: list[tuple[float, Outgoing]]) -> list[str]:
-    return [o.msg.get_type() for _t, o in out]
+    """The kinds sent, the failsafe's parameter reads among them (not avoidance's)."""
+    return [o.msg.get_type() for _t, o in out if o.msg.get_type() != "PARAM_REQUEST_READ" or fs_read(o)]
 
 
 def test_the_first_heartbeat_asks_for_the_failsafe_parameters_as_the_bridge_itself() -> None:
     rig = FsRig(profile())
     rig.heartbeat(0.0, mode=MANUAL)
-    asked = [(t, o) for t, o in rig.run_until(0.2, 0.0) if o.msg.get_type() == "PARAM_REQUEST_READ"]
+    asked = [(t, o) for t, o in rig.run_until(0.2, 0.0) if fs_read(o)]
     assert [o.msg.param_id for _t, o in asked] == ["FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_OPTIONS"]
     assert all((o.dest, o.src_system, o.src_component) == (Link.AUTOPILOT, 1, 191) for _t, o in asked)
     assert rig.answer(0.3, 1) and "RB: GCS failsafe 1 (5 s): overrides pause for it" in texts(rig.sent)
-    assert not [o for _t, o in rig.run_until(10.0, 0.3) if o.msg.get_type() == "PARAM_REQUEST_READ"]
+    assert not [o for _t, o in rig.run_until(10.0, 0.3) if fs_read(o)]
 
 
 def test_a_silent_gcs_gets_neutral_release_then_nothing_until_the_autopilot_acts() -> None:
@@ -276,17 +282,17 @@ def test_a_corrupted_fs_gcs_timeout_pauses_only_until_the_autopilot_answers_then
     rig.param(0.7, "FS_GCS_TIMEOUT", 0.0)  # one frame from the autopilot's ids: ArduPilot would fail safe at once
     released = rig.run_until(0.75, 0.7)
     assert rig.core.state is CommandState.GCS_SILENT and overrides(released)[-1] == (0, 0)
-    asked = [(t, o.msg.param_id) for t, o in released if o.msg.get_type() == "PARAM_REQUEST_READ"]
+    asked = [(t, o.msg.param_id) for t, o in released if fs_read(o)]
     assert asked == [(0.7, "FS_GCS_TIMEOUT")]  # the autopilot is asked at once
     rig.param(0.72, "FS_GCS_TIMEOUT", 5.0)  # its answer
     assert rig.core.state is CommandState.GCS_SILENT
     again = rig.run_until(0.85, 0.75)
-    assert [(t, o.msg.param_id) for t, o in again if o.msg.get_type() == "PARAM_REQUEST_READ"] == \
+    assert [(t, o.msg.param_id) for t, o in again if fs_read(o)] == \
         [(0.8, "FS_GCS_TIMEOUT")]  # changed once more: asked once more, PARAM_CONFIRM_S after the last request
     assert rig.core.state is CommandState.IDLE and overrides(again)  # 5 s since the GCS's last word: not yet
     rig.param(0.86, "FS_GCS_TIMEOUT", 5.0)  # said twice: confirmed, nothing more to ask
     assert rig.local(0.9, vx=1.0).out and rig.core.state is CommandState.ACTIVE  # a fresh request drives
-    assert not [o for _t, o in rig.run_until(5.0, 0.9) if o.msg.get_type() == "PARAM_REQUEST_READ"]
+    assert not [o for _t, o in rig.run_until(5.0, 0.9) if fs_read(o)]
     assert rig.core.state is not CommandState.GCS_SILENT
     rig.run_until(5.6, 5.0)
     assert rig.core.state is CommandState.GCS_SILENT  # the real timeout still holds: 5 s after 0.5 s
@@ -299,5 +305,5 @@ def test_the_parameters_are_read_again_after_the_autopilot_comes_back() -> None:
     rig.run_until(1.0, 0.01)
     later = rig.run_until(10.0, 5.0, heartbeat_every_s=None)  # silent autopilot: link lost
     rig.heartbeat(10.0, mode=MANUAL)
-    again = [o.msg.param_id for _t, o in rig.run_until(10.2, 10.0) if o.msg.get_type() == "PARAM_REQUEST_READ"]
+    again = [o.msg.param_id for _t, o in rig.run_until(10.2, 10.0) if fs_read(o)]
     assert "PARAM_REQUEST_READ" not in kinds(later) and again == ["FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_OPTIONS"]

@@ -148,16 +148,22 @@ def test_a_silent_sensor_crawls_in_every_direction_and_says_so_once() -> None:
     assert rig.core.counters["avoid.sensor_back"] == 1
 
 
-def test_avoid_params_are_read_once_a_sensor_is_seen_and_avoid_enable_0_turns_it_off() -> None:
+AVOID_AND_FENCE = ["AVOID_ENABLE", "AVOID_MARGIN", "AVOID_BACKUP_SPD", "FENCE_ENABLE", "FENCE_TYPE", "FENCE_RADIUS",
+                   "FENCE_MARGIN"]
+FENCE_OFF = (("FENCE_ENABLE", 0.0), ("FENCE_TYPE", 6.0), ("FENCE_RADIUS", 300.0), ("FENCE_MARGIN", 2.0))
+
+
+def avoid_reads(out: list[Outgoing]) -> list[str]:
+    return [o.msg.param_id for o in out if o.msg.get_type() == "PARAM_REQUEST_READ" and o.msg.param_id in
+            AVOID_AND_FENCE]
+
+
+def test_avoid_and_fence_params_are_read_at_the_first_heartbeat_and_avoid_enable_0_turns_it_off() -> None:
     rig = ready()
-    rig.tick(0.05)  # nothing asked before a sensor
-    assert not [o for _, o in rig.sent if o.msg.get_type() == "PARAM_REQUEST_READ"
-                and o.msg.param_id.startswith("AVOID")]
-    rig.distance(0.10, 160)
-    asked = [o.msg.param_id for o in rig.tick(0.12) if o.msg.get_type() == "PARAM_REQUEST_READ"]
-    assert asked == ["AVOID_ENABLE", "AVOID_MARGIN", "AVOID_BACKUP_SPD"]
+    assert avoid_reads(rig.tick(0.05)) == AVOID_AND_FENCE  # asked once the autopilot is known, as FS_GCS_*
     rig.param(0.13, "AVOID_MARGIN", 1.0)
     rig.param(0.13, "AVOID_BACKUP_SPD", 0.75)
+    rig.distance(0.135, 160)
     rig.local(0.14, vx=1.0, mask=3527)
     assert rig.core.commanded.v_m_s == pytest.approx(expected_cap(1.6, margin_m=1.0))  # AVOID_ENABLE: default 3
     rig.param(0.15, "AVOID_ENABLE", 0.0)
@@ -168,18 +174,18 @@ def test_avoid_params_are_read_once_a_sensor_is_seen_and_avoid_enable_0_turns_it
 
 def test_an_unasked_avoid_enable_0_is_not_believed_until_the_autopilot_says_it() -> None:
     rig = ready(prof(FAST_BRAKE))
+    rig.tick(0.05)
     rig.distance(0.10, 150)
-    rig.tick(0.12)
-    for name, value in (("AVOID_ENABLE", 3.0), ("AVOID_MARGIN", 2.0), ("AVOID_BACKUP_SPD", 0.75)):
+    for name, value in (("AVOID_ENABLE", 3.0), ("AVOID_MARGIN", 2.0), ("AVOID_BACKUP_SPD", 0.75), *FENCE_OFF):
         rig.param(0.13, name, value)
-    rig.tick(0.15)  # all answered: the reader stops asking
-    rig.param(0.20, "AVOID_ENABLE", 0.0)  # a lone frame (forged, corrupted, or a GCS's PARAM_SET)
-    assert overrides(rig.local(0.21, vx=0.5, mask=3527).out) == [(1500, 1500)]
-    asked = [o.msg.param_id for o in rig.tick(0.30) if o.msg.get_type() == "PARAM_REQUEST_READ"]
-    assert asked == ["AVOID_ENABLE"]
-    rig.param(0.31, "AVOID_ENABLE", 0.0)  # the autopilot confirms
-    rig.distance(0.32, 150)
-    assert overrides(rig.local(0.33, vx=0.5, mask=3527).out) == [(1739, 1739)]
+    assert avoid_reads(rig.tick(2.5)) == []  # all answered: the reader stops asking
+    rig.param(2.60, "AVOID_ENABLE", 0.0)  # a lone frame (forged, corrupted, or a GCS's PARAM_SET)
+    rig.distance(2.605, 150)
+    assert overrides(rig.local(2.61, vx=0.5, mask=3527).out) == [(1500, 1500)]
+    assert avoid_reads(rig.tick(2.70)) == ["AVOID_ENABLE"]
+    rig.param(2.71, "AVOID_ENABLE", 0.0)  # the autopilot confirms
+    rig.distance(2.72, 150)
+    assert overrides(rig.local(2.73, vx=0.5, mask=3527).out) == [(1739, 1739)]
 
 
 def test_sensors_of_other_systems_are_ignored_and_a_companion_scan_on_the_gcs_link_counts() -> None:
@@ -208,10 +214,18 @@ def _script(rig: Rig) -> list[tuple[float, str, tuple[object, ...]]]:
     return [(t, o.msg.get_type(), tuple(o.msg.to_dict().items())) for t, o in rig.sent]
 
 
+def _drive(sent: list[tuple[float, str, tuple[object, ...]]]) -> list[tuple[float, str, tuple[object, ...]]]:
+    """What was sent, but the avoidance's reads of AVOID_* / FENCE_* (a few frames at the first heartbeat)."""
+    return [m for m in sent if m[1] != "PARAM_REQUEST_READ" or dict(m[2])["param_id"] not in AVOID_AND_FENCE]
+
+
 def test_without_any_sensor_the_outputs_are_exactly_todays() -> None:
     on = Rig(profile(fast=False))
     off = Rig(profile(fast=False, avoidance={"enabled": False}))
-    assert _script(on) == _script(off)
+    sent_on, sent_off = _script(on), _script(off)
+    assert _drive(sent_on) == sent_off
+    reads = [m for m in sent_on if m not in _drive(sent_on)]
+    assert len(reads) == 2 * len(AVOID_AND_FENCE)  # asked and asked again: this autopilot answers nothing
     assert on.core.avoid.picture is None
     assert not any(k.startswith("avoid.") for k in on.core.counters)
 
@@ -269,4 +283,6 @@ def test_without_any_sensor_the_whole_bridge_sends_exactly_what_it_sends_with_av
 
     on = script(prof())
     assert len(on) > 80  # overrides at 20 Hz, heartbeats, stream requests
-    assert on == script(prof(enabled=False))
+    drive = [m for m in on if m[0] != "PARAM_REQUEST_READ" or dict(m[1])["param_id"] not in AVOID_AND_FENCE]
+    assert drive == script(prof(enabled=False))
+    assert len(on) - len(drive) == 2 * len(AVOID_AND_FENCE)  # the reads: 0 s and 2 s (nobody answers them)

@@ -38,6 +38,7 @@ class AvoidReason(enum.Enum):
     FENCE_SLOW = "fence_slow"
     FENCE_STOP = "fence_stop"
     FENCE_BREACHED = "fence_breached"  # outside a fence: only the way back in passes
+    FENCE_UNKNOWN = "fence_unknown"  # a fence is on but the rover cannot be placed on it: crawl
     BLIND_CRAWL = "blind_crawl"  # a proximity sensor went silent
 
 

@@ -28,6 +28,7 @@ import logging
 from rover_bridge.command.arbiter import Arbiter
 from rover_bridge.command.demand import AutopilotNavigation
 from rover_bridge.command.drivers import CommandState
+from rover_bridge.command.fence_watch import MISSION_MESSAGES
 from rover_bridge.command.gcs_requests import GcsRequests
 from rover_bridge.command.goto import AUTOPILOT_NAV_ECHOES, PositionTargets, is_goto
 from rover_bridge.command.modes import AUTOPILOT, ModeTable
@@ -64,7 +65,8 @@ class CommandCore:
     # What handle() reads from the autopilot link (BridgeCore decodes nothing else from it); the demand only
     # once the autopilot has driven in one of its modes (demand_wanted): until then nobody needs it decoded.
     AUTOPILOT_READS = frozenset({"HEARTBEAT", "ATTITUDE", "COMMAND_ACK", "TIMESYNC", "PARAM_VALUE",
-                                 "STATUSTEXT"}) | AUTOPILOT_NAV_ECHOES | SENSOR_MESSAGES
+                                 "STATUSTEXT", "HOME_POSITION"}) | AUTOPILOT_NAV_ECHOES | SENSOR_MESSAGES
+    AUTOPILOT_READS |= MISSION_MESSAGES
     DEMAND_READS = frozenset({"SERVO_OUTPUT_RAW"})
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter,
@@ -85,7 +87,7 @@ class CommandCore:
                                        count)
         self.autopilot = AutopilotNavigation(profile, identity, reporter, vehicle, modes, self.stage, wheels, count)
         wheels.watchers.append(self.targets.watch)
-        self.avoid = wheels.avoid = ProximityAvoidance(profile, identity, reporter, vehicle, count)
+        self.avoid = wheels.avoid = ProximityAvoidance(profile, identity, reporter, vehicle, count, pose_source)
 
     # ----------------------------------------------------------------- read-only views
 
@@ -160,6 +162,11 @@ class CommandCore:
                 return Reaction(consumed=False, out=tuple(self.gates.gcs_failsafe.on_param_value(msg, now_s)))
             elif kind == "STATUSTEXT":
                 return self._resumed(now_s) if self.gates.gcs_failsafe.on_statustext(msg) else NOTHING
+            elif kind in MISSION_MESSAGES:  # the fence's download (ours: consumed) or another client's upload
+                consumed, out = self.avoid.on_mission(msg, now_s)
+                return Reaction(consumed=consumed, out=tuple(out)) if consumed or out else NOTHING
+            elif kind == "HOME_POSITION":
+                self.avoid.on_home(msg)
             elif kind in AUTOPILOT_NAV_ECHOES:
                 if kind == "NAV_CONTROLLER_OUTPUT":
                     self.autopilot.on_nav(msg, now_s)
@@ -274,7 +281,7 @@ class CommandCore:
             return NOTHING
         if vehicle.last_heartbeat_s is None or vehicle.link_lost(now_s):
             self.gates.gcs_failsafe.autopilot_back(now_s)  # first seen, or back (rebooted?): read its FS_GCS_*
-            self.avoid.autopilot_back(now_s)  # and AVOID_*, once a range sensor has been seen
+            self.avoid.autopilot_back(now_s)  # and AVOID_* / FENCE_*, the fence and home
         vehicle.on_heartbeat(msg, now_s)
         self.gates.gcs_failsafe.silence.on_mode(vehicle.custom_mode)
         if not self.targets.in_guided():
@@ -290,6 +297,12 @@ class CommandCore:
         if (msg.get_srcSystem() != self.identity.vehicle_system_id
                 or msg.get_srcComponent() != self.identity.autopilot_component_id):
             return NOTHING  # another component's answer (or a forged one) says nothing of the autopilot's mode
+        command = int(msg.command)
+        if command == mavlink.MAV_CMD_DO_FENCE_ENABLE and int(msg.result) == mavlink.MAV_RESULT_ACCEPTED:
+            self.avoid.fence_switched(now_s)
+            return NOTHING
+        if command == mavlink.MAV_CMD_REQUEST_MESSAGE and self._to_us(msg):
+            return Reaction(consumed=True)  # the answer to the fence's request for home: not the GCS's business
         if int(msg.command) == mavlink.MAV_CMD_DO_SET_MODE:
             ours = self.targets.mode_change_ack(msg, now_s)
             if ours is not None:
@@ -304,6 +317,10 @@ class CommandCore:
             self.wheels.drop_request()
             out += self.wheels.advance(now_s, force_output=False)
         return Reaction(consumed=True, out=tuple(out))
+
+    def _to_us(self, msg: MAVLinkMessage) -> bool:
+        return bool(msg.target_system == self.identity.own_system_id
+                    and msg.target_component == self.identity.component_id)
 
     def _count(self, name: str) -> None:
         self.counters[name] = self.counters.get(name, 0) + 1

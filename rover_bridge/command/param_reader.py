@@ -29,6 +29,7 @@ class ParamReader:
         self._next_s: float | None = None
         self._asked_s = -math.inf
         self._unconfirmed: set[str] = set()  # taken from a PARAM_VALUE that changed the value: asked for again
+        self._all = False  # `refresh`: ask for every name once more, keeping the values meanwhile
 
     def confirmed(self, name: str) -> float | None:
         """The value the autopilot has said (an answer to a request, or said twice); None while unknown or while
@@ -41,11 +42,18 @@ class ParamReader:
         self._unconfirmed.clear()
         self._attempts, self._next_s = 0, now_s
 
+    def refresh(self, now_s: float) -> None:
+        """Ask for every name again, keeping the values until the answers replace them (the autopilot may have
+        changed one without saying so, e.g. a command that switches the fence on)."""
+        self._all, self._attempts, self._next_s = True, 0, now_s
+
     def due(self, now_s: float) -> bool:
         return self._next_s is not None and now_s >= self._next_s
 
     def requests(self, now_s: float, target_system: int, target_component: int) -> list[MAVLinkMessage]:
-        missing = [name for name in self.names if name not in self.values or name in self._unconfirmed]
+        missing = [name for name in self.names
+                   if self._all or name not in self.values or name in self._unconfirmed]
+        self._all = False
         if not missing or self._attempts >= PARAM_ATTEMPTS:
             for name in self._unconfirmed:  # not the autopilot's word: it did not say it again when asked
                 del self.values[name]

@@ -1,16 +1,18 @@
-"""Simple avoidance in the command flow (pure): the bridge's own drivers stop AVOID_MARGIN short of obstacles.
+"""Simple avoidance in the command flow (pure): the bridge's own drivers stop AVOID_MARGIN short of obstacles
+and FENCE_MARGIN inside fences.
 
 The gate sits between the safety gates and the output stage (rover_bridge.command.arbiter): the twist a GCS
-velocity request, MANUAL_CONTROL or a position target wants has its speed toward an obstacle capped by
+velocity request, MANUAL_CONTROL or a position target wants has its speed toward an obstacle or fence capped by
 `avoidance.limit_velocity` before the limiter. The autopilot's own navigation is not touched (ArduPilot avoids
 in it itself), nor is MANUAL unless [avoidance] in_manual (ArduPilot does not avoid in MANUAL).
 
 - Picture: every DISTANCE_SENSOR and OBSTACLE_DISTANCE from the vehicle's system (any component, either link)
-  feeds one `ObstaclePicture`, with ATTITUDE's yaw for earth-frame scans. Nothing is built, asked or changed
-  until the first such message: a rover without range sensors drives exactly as before.
-- Parameters: AVOID_ENABLE (bit 1: proximity), AVOID_MARGIN and AVOID_BACKUP_SPD are read from the autopilot
-  (PARAM_REQUEST_READ once a sensor is seen, and after the autopilot comes back) by the ParamReader the GCS
-  failsafe uses (rover_bridge.command.param_reader). Until the autopilot has said them ArduPilot's defaults
+  feeds one `ObstaclePicture`, with ATTITUDE's yaw for earth-frame scans. No picture is built and nothing
+  changed until the first such message: a rover without range sensors or fences drives exactly as before.
+- Fences: rover_bridge.command.fence_watch (FENCE_* as read here, home, the downloaded fence, the rover's place).
+- Parameters: AVOID_ENABLE (bit 1: proximity, bit 0: fences), AVOID_MARGIN, AVOID_BACKUP_SPD and FENCE_* are read
+  from the autopilot (PARAM_REQUEST_READ at its first heartbeat, and after it comes back) by the ParamReader the
+  GCS failsafe uses (rover_bridge.command.param_reader). Until the autopilot has said them ArduPilot's defaults
   apply (AVOID_ENABLE 3, AVOID_MARGIN 2): avoiding with the defaults is the safe side of not knowing. A lone
   unasked PARAM_VALUE is used only once the autopilot confirms it (a forged AVOID_ENABLE 0 must not switch
   avoidance off).
@@ -18,16 +20,20 @@ in it itself), nor is MANUAL unless [avoidance] in_manual (ArduPilot does not av
   (brakes earlier and gentler: room for a rover that brakes worse than its profile), after the reaction delay
   plus one output period. A reading `age_s` old is taken `|v| * age_s` nearer (the rover has moved since).
   AVOID_BACKUP_SPD is read and reported by the limiter, not applied: the bridge only lowers a request.
-- Blind: a sensor seen and then silent caps the speed at crawl_speed_m_s in every direction, said once.
+- Blind: a sensor seen and then silent caps the speed at crawl_speed_m_s in every direction, said once; so does a
+  fence that is on while the rover cannot be placed on it.
 - What it does is said by STATUSTEXT on each change (rate-limited) and counted (`avoid.*`, in --stats-json).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import replace
 
-from rover_bridge.command.avoidance import AvoidReason, AvoidSettings, Limited, limit_velocity
+from rover_bridge.command.avoidance import AvoidReason, AvoidSettings, FenceQuery, Limited, limit_velocity
+from rover_bridge.command.fence_watch import AVOID_FENCE, FENCE_PARAMS, FenceConfig, FenceWatch
+from rover_bridge.command.navigation import PoseSource
 from rover_bridge.command.obstacles import ObstaclePicture, ObstacleView, SectorState
 from rover_bridge.command.param_reader import ParamReader
 from rover_bridge.command.vehicle import VehicleState
@@ -41,16 +47,19 @@ from rover_bridge.params import Profile
 SENSOR_MESSAGES = frozenset({"DISTANCE_SENSOR", "OBSTACLE_DISTANCE"})
 AVOID_PARAMS = ("AVOID_ENABLE", "AVOID_MARGIN", "AVOID_BACKUP_SPD")
 ARDUPILOT_DEFAULTS = {"AVOID_ENABLE": 3.0, "AVOID_MARGIN": 2.0, "AVOID_BACKUP_SPD": 0.75}
-AVOID_PROXIMITY = 2  # AVOID_ENABLE bit 1 (bit 0 is the fence: not wired yet)
+AVOID_PROXIMITY = 2  # AVOID_ENABLE bit 1 (bit 0: the fence, rover_bridge.command.fence_watch)
 ROVER_MANUAL = int(mavlink.ROVER_MODE_MANUAL)
-_OBSTACLE = frozenset({AvoidReason.OBSTACLE_SLOW, AvoidReason.OBSTACLE_STOP})  # said once, not per flip
+# What is said when a request starts being limited, once per episode (a group), not per flip between its reasons.
+_GROUP = {AvoidReason.OBSTACLE_SLOW: "obstacle", AvoidReason.OBSTACLE_STOP: "obstacle",
+          AvoidReason.FENCE_SLOW: "fence", AvoidReason.FENCE_STOP: "fence",
+          AvoidReason.FENCE_BREACHED: "breached", AvoidReason.FENCE_UNKNOWN: "unplaced"}
 
 
 class ProximityAvoidance:
-    """The picture, the AVOID_* parameters and the cap on the bridge's drivers' twist (module doc)."""
+    """The picture, the fences, the AVOID_* and FENCE_* parameters and the cap on the drivers' twist (module doc)."""
 
     def __init__(self, profile: Profile, identity: Identity, reporter: Reporter, vehicle: VehicleState,
-                 count: Callable[[str], None]) -> None:
+                 count: Callable[[str], None], source: PoseSource | None = None) -> None:
         p = profile.avoidance
         self.params = p
         self.identity = identity
@@ -60,7 +69,8 @@ class ProximityAvoidance:
         self.decel_m_s2 = 0.5 * profile.limits.max_linear_decel_m_s2  # Rover: 0.5 * ATC_DECEL_MAX
         self.delay_s = p.reaction_delay_s + 1.0 / profile.command.rate_hz
         self.picture: ObstaclePicture | None = None  # None until a sensor is seen: no cost, no change
-        self.reader = ParamReader(AVOID_PARAMS)
+        self.reader = ParamReader(AVOID_PARAMS + FENCE_PARAMS)
+        self.fence = FenceWatch(identity, source, profile.navigation.gps_timeout_s, profile.safety.attitude_timeout_s)
         self.reason = AvoidReason.PASS  # the last output's
         self.blind = False  # a silent sensor was said
 
@@ -72,25 +82,53 @@ class ProximityAvoidance:
             return
         if self.picture is None:
             self.picture = ObstaclePicture(self.params.sector_timeout_s, self.params.sensor_timeout_s)
-            self.reader.restart(now_s)
             self._count("avoid.sensor_seen")
         self.picture.handle(msg, now_s, self.vehicle.fresh_yaw(now_s))
 
     def autopilot_back(self, now_s: float) -> None:
-        """The autopilot's first heartbeat or one after a gap (a reboot): read AVOID_* again if they matter."""
-        if self.picture is not None:
+        """The autopilot's first heartbeat or one after a gap (a reboot): read AVOID_* and FENCE_* again, and its
+        fence and home if they are used."""
+        if self.params.enabled:
             self.reader.restart(now_s)
+            self.fence.refresh(now_s)
+
+    def fence_switched(self, now_s: float) -> None:
+        """The autopilot accepted MAV_CMD_DO_FENCE_ENABLE: read FENCE_* again (values kept meanwhile)."""
+        if self.params.enabled:
+            self.reader.refresh(now_s)
+
+    def from_autopilot(self, msg: MAVLinkMessage) -> bool:
+        return bool(msg.get_srcSystem() == self.identity.vehicle_system_id
+                    and msg.get_srcComponent() == self.identity.autopilot_component_id)
 
     def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> None:
-        if (self.picture is not None and msg.get_srcSystem() == self.identity.vehicle_system_id
-                and msg.get_srcComponent() == self.identity.autopilot_component_id):
+        if self.params.enabled and self.from_autopilot(msg):
             self.reader.on_param_value(msg, now_s)
+            self.fence.configure(self.fence_config(), now_s)
+
+    def on_home(self, msg: MAVLinkMessage) -> None:
+        if self.params.enabled and self.from_autopilot(msg):
+            self.fence.on_home(msg)
+
+    def on_mission(self, msg: MAVLinkMessage, now_s: float) -> tuple[bool, list[Outgoing]]:
+        """A mission message from the autopilot: (consumed: it answers the bridge's own download, the messages)."""
+        if not self.params.enabled or not self.from_autopilot(msg):
+            return False, []
+        ours = self.fence.addressed_to_us(msg)
+        return ours, self._to_autopilot(self.fence.on_mission(msg, now_s))
 
     def tick(self, now_s: float) -> list[Outgoing]:
         vehicle = self.identity.vehicle_system_id
-        if not self.reader.due(now_s) or vehicle is None:
+        if vehicle is None:
             return []
-        msgs = self.reader.requests(now_s, vehicle, self.identity.autopilot_component_id)
+        msgs: list[MAVLinkMessage] = []
+        if self.reader.due(now_s):
+            msgs += self.reader.requests(now_s, vehicle, self.identity.autopilot_component_id)
+            self.fence.configure(self.fence_config(), now_s)  # values dropped unconfirmed
+        msgs += self.fence.tick(now_s)
+        return self._to_autopilot(msgs) if msgs else []
+
+    def _to_autopilot(self, msgs: list[MAVLinkMessage]) -> list[Outgoing]:
         return [Outgoing(Link.AUTOPILOT, m, self.identity.own_system_id, self.identity.component_id) for m in msgs]
 
     # ----------------------------------------------------------------- the cap
@@ -100,26 +138,43 @@ class ProximityAvoidance:
         said = self.reader.confirmed(name)
         return ARDUPILOT_DEFAULTS[name] if said is None else said
 
-    def settings(self) -> AvoidSettings | None:
-        """The limiter's settings now; None when AVOID_ENABLE has no proximity bit."""
-        if not int(self.value("AVOID_ENABLE")) & AVOID_PROXIMITY:
+    def fence_config(self) -> FenceConfig | None:
+        """FENCE_* and AVOID_ENABLE bit 0 as the autopilot has said them; None until it has (no fence)."""
+        said = [self.reader.confirmed(name) for name in FENCE_PARAMS]
+        if any(v is None for v in said):
             return None
+        enable, kind, radius, margin = (float(v or 0.0) for v in said)
+        enabled = int(enable) == 1 and bool(int(self.value("AVOID_ENABLE")) & AVOID_FENCE)
+        return FenceConfig(enabled, int(kind), radius, max(margin, 0.0))
+
+    def settings(self) -> AvoidSettings:
         return AvoidSettings(margin_m=max(self.value("AVOID_MARGIN"), 0.0), decel_m_s2=self.decel_m_s2,
                              delay_s=self.delay_s, crawl_speed_m_s=self.params.crawl_speed_m_s,
                              backup_speed_m_s=self.value("AVOID_BACKUP_SPD"))
 
     def limit(self, target: Twist2D, now_s: float, mode: int | None,
               moving_m_s: float) -> tuple[Twist2D, list[Outgoing]]:
-        """The driver's twist with its speed toward obstacles capped (`moving_m_s`: the limiter's speed now)."""
-        picture = self.picture
-        if picture is None:
+        """The driver's twist with its speed toward obstacles and fence edges capped (`moving_m_s`: the limiter's
+        speed now)."""
+        picture, fences = self.picture, self.fence.fences
+        if picture is None and fences is None:
             return target, []
-        settings = self.settings()
-        if settings is None or (mode == ROVER_MANUAL and not self.params.in_manual):
+        if mode == ROVER_MANUAL and not self.params.in_manual:
             return target, self._said(Limited(target.v_m_s, target.omega_rad_s), now_s)
-        view = _aged(picture.view(now_s), abs(moving_m_s))
-        limited = limit_velocity(target.v_m_s, target.omega_rad_s, settings, view)
-        out = self._blind(view.blind, now_s) + self._said(limited, now_s)
+        settings = self.settings()
+        out: list[Outgoing] = []
+        view = None
+        if picture is not None and int(self.value("AVOID_ENABLE")) & AVOID_PROXIMITY:
+            view = _aged(picture.view(now_s), abs(moving_m_s))
+            out += self._blind(view.blind, now_s)
+        fence: FenceQuery | None = None
+        if fences is not None:
+            fence = self.fence.query(now_s)
+        limited = limit_velocity(target.v_m_s, target.omega_rad_s, settings, view, fence)
+        if fences is not None and fence is None and abs(limited.v_m_s) > settings.crawl_speed_m_s:
+            crawl = math.copysign(settings.crawl_speed_m_s, limited.v_m_s)  # a fence on, the rover not placed
+            limited = Limited(crawl, target.omega_rad_s, AvoidReason.FENCE_UNKNOWN, settings.crawl_speed_m_s)
+        out += self._said(limited, now_s)
         if limited.v_m_s == target.v_m_s:
             return target, out
         return Twist2D(limited.v_m_s, target.omega_rad_s), out
@@ -130,14 +185,24 @@ class ProximityAvoidance:
         reason = limited.reason
         if reason is self.reason:
             return []
-        entering = reason in _OBSTACLE and self.reason not in _OBSTACLE
+        group, before = _GROUP.get(reason), _GROUP.get(self.reason)
         self.reason = reason
         self._count(f"avoid.{reason.value}")
-        if not entering:
+        if group is None or group == before:
             return []
-        margin_m = self.value("AVOID_MARGIN")
-        text = f"RB: obstacle ahead: slowing to stop {margin_m:g} m short"
-        return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, text, now_s, key="avoid.obstacle")
+        return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, self._text(reason), now_s,
+                                        key=f"avoid.{group}")
+
+    def _text(self, reason: AvoidReason) -> str:
+        if reason is AvoidReason.FENCE_BREACHED:
+            return "RB: outside the fence: only the way back in"
+        if reason is AvoidReason.FENCE_UNKNOWN:
+            return f"RB: fence on, position unknown: crawling ({self.params.crawl_speed_m_s:g} m/s)"
+        if reason in (AvoidReason.FENCE_SLOW, AvoidReason.FENCE_STOP):
+            config = self.fence.config
+            margin_m = 0.0 if config is None else config.margin_m
+            return f"RB: fence ahead: slowing to stop {margin_m:g} m inside"
+        return f"RB: obstacle ahead: slowing to stop {self.value('AVOID_MARGIN'):g} m short"
 
     def _blind(self, blind: bool, now_s: float) -> list[Outgoing]:
         if blind == self.blind:
