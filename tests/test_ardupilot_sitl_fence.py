@@ -10,7 +10,7 @@ for after arming (Rover moves home there).
 Through the bridge the rover must never cross the fence (farthest < FENCE_RADIUS), stop where ArduPilot would
 (farthest <= FENCE_RADIUS - FENCE_MARGIN + 0.5 m), not timidly (farthest >= ArduPilot alone's - 1.0 m), and the
 bridge must have counted a fence limit (its --stats-json `avoid.fence_*`); what it said (STATUSTEXT "RB: ...")
-is printed. About 2.5 minutes (the two SITLs one after the other).
+is printed. About 2 minutes (the two SITLs one after the other).
 
 Runs only when ROVER_BRIDGE_ARDUROVER names an `ardurover` binary. SITL instances 14 (bridge) and 15 (alone).
 """
