@@ -5,6 +5,8 @@
 - `Sitl`: one `ardurover` (rover-skid, rover.parm + rover-skid.parm + the given .parm files + `extra`) in its own
   folder, with a monitor on SERIAL1 that asks for the simulator's truth and the outputs (`streams`).
 - `Bridge`: `rover-bridge run` on the SITL's SERIAL0 (TCP), a ground station `Link` on its UDP port.
+- `alone` / `bridged`: one run's SITL with a ground station, ArduPilot alone (the GCS on its SERIAL0) or through the
+  bridge (the shipped .parm and profile), closed however the run ends.
 
 SITL's ports are 5760 + 10 * instance (SERIAL0, TCP, one client) and 5762 + 10 * instance (SERIAL1). The
 binary's tree gives the default parameter files (<tree>/build/sitl/bin/ardurover ->
@@ -21,7 +23,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -221,6 +224,21 @@ class Sitl:
         m = self.monitor.of("SIMSTATE")[-1]
         self.origin_deg = (m.lat * 1e-7, m.lng * 1e-7)
 
+    def home_from_autopilot(self) -> tuple[float, float]:
+        """Truth coordinates from the autopilot's home on (HOME_POSITION, asked for; its latitude, longitude in deg).
+
+        Home is the EKF's position where it was set (at arming if not locked), so distances from it are what the
+        autopilot's circle fence measures, less the EKF's error against the truth."""
+        since = time.monotonic()
+        for _ in range(3):
+            self.monitor.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+            if self.monitor.wait(lambda: bool(self.monitor.of("HOME_POSITION", since)), 2.0):
+                break
+        homes = self.monitor.of("HOME_POSITION", since)
+        assert homes, f"no HOME_POSITION ({self.monitor.texts()[-5:]})"
+        self.origin_deg = (homes[-1].latitude * 1e-7, homes[-1].longitude * 1e-7)
+        return self.origin_deg
+
     def lat_lon_e7(self, north_m: float, east_m: float) -> tuple[int, int]:
         assert self.origin_deg is not None
         lat0, lon0 = self.origin_deg
@@ -263,3 +281,34 @@ class Bridge:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+@contextmanager
+def alone(binary: str, instance: int, extra: str, workdir: Path,
+          streams: dict[int, int] | None = None) -> Iterator[tuple[Sitl, Link]]:
+    """ArduPilot alone (rover-skid.parm's SERVO1/3_FUNCTION 73/74: its own skid mixer) and a GCS on its SERIAL0."""
+    sitl = Sitl(binary, instance, extra, workdir / "alone-sitl", (), streams)
+    gcs: Link | None = None
+    try:
+        gcs = sitl.gcs_on_serial0()
+        yield sitl, gcs
+    finally:
+        if gcs is not None:
+            gcs.close()
+        sitl.close()
+
+
+@contextmanager
+def bridged(binary: str, instance: int, extra: str, workdir: Path, streams: dict[int, int] | None = None,
+            extra_args: Sequence[str] = ()) -> Iterator[tuple[Sitl, Bridge]]:
+    """The bridge setup: the shipped .parm (per-wheel passthrough) and `rover-bridge run` with the shipped profile."""
+    sitl = Sitl(binary, instance, extra, workdir / "bridge-sitl", (PARM,), streams)
+    bridge: Bridge | None = None
+    try:
+        bridge = Bridge(sitl, workdir, PROFILE, extra_args=extra_args)
+        yield sitl, bridge
+    finally:
+        if bridge is not None:
+            bridge.gcs.each = None
+            bridge.close()
+        sitl.close()

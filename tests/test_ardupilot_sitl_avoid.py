@@ -30,7 +30,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_sitl_control as bench
-from ardupilot_rig import PARM, PROFILE, Bridge, Link, Sitl
+from ardupilot_rig import Link, Sitl, alone, bridged
 
 from rover_bridge.mavlink.dialect import mavlink
 
@@ -131,32 +131,19 @@ def approach(driver: bench.Driver) -> Approach:
 
 
 def run_alone(workdir: Path) -> Approach:
-    sitl = Sitl(BINARY, INSTANCE_ALONE, bench.COMMON + AVOID_PARAMS, workdir / "alone-sitl", (), bench.STREAMS)
-    gcs = sitl.gcs_on_serial0()
-    try:
+    with alone(BINARY, INSTANCE_ALONE, bench.COMMON + AVOID_PARAMS, workdir, bench.STREAMS) as (sitl, gcs):
         return approach(bench.Driver("ArduPilot alone", sitl, gcs))
-    finally:
-        gcs.close()
-        sitl.close()
 
 
 def run_bridge(workdir: Path) -> tuple[Approach, dict[str, int], int]:
     """The approach through the bridge, its `command` counters and how many DISTANCE_SENSOR its GCS saw."""
-    sitl = Sitl(BINARY, INSTANCE_BRIDGE, bench.BRIDGE_PARAMS + AVOID_PARAMS, workdir / "bridge-sitl", (PARM,),
-                bench.STREAMS)
     stats = workdir / "stats.json"
-    bridge: Bridge | None = None
-    try:
-        bridge = Bridge(sitl, workdir, PROFILE, extra_args=("--stats-json", str(stats)))
+    with bridged(BINARY, INSTANCE_BRIDGE, bench.BRIDGE_PARAMS + AVOID_PARAMS, workdir, bench.STREAMS,
+                 ("--stats-json", str(stats))) as (sitl, bridge):
         result = approach(bench.Driver("bridge", sitl, bridge.gcs))
         seen = len(bridge.gcs.of("DISTANCE_SENSOR"))
         bridge.stop()
         return result, json.loads(stats.read_text())["command"], seen
-    finally:
-        if bridge is not None:
-            bridge.gcs.each = None
-            bridge.close()
-        sitl.close()
 
 
 def test_the_bridge_stops_short_of_a_wall_as_ardupilot_alone_does(tmp_path: Path) -> None:
