@@ -188,3 +188,57 @@ def test_the_demo_judges_each_estimate_at_its_own_samples_not_between_them() -> 
     assert max(e[3] for e in errs) < 1e-9  # the wheels, at the truth's own stamps
     # the EKF between the truth's 20 ms samples: at most their straight line's error (0.03 deg at 10 rad/s^2)
     assert max(e[4] for e in errs) < 0.03
+
+
+def test_obstacles_demo_stops_short_of_the_wall_and_the_post_and_draws_it(tmp_path: Path) -> None:
+    # The scenario as `rover-bridge demo --scenario obstacles` runs it (run_demo = Demo.run + report), in this
+    # process so that the picture's panels can be read: GUIDED, 1.0 m/s at a wall 8 m ahead, then at a post,
+    # the emulator's SITL proximity sensor (PRX1_TYPE 10), AVOID_MARGIN as the autopilot reports it (2 m).
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from rover_bridge.app.demo import Demo, report
+    from rover_bridge.app.demo_obstacles import obstacle_legs
+    from rover_bridge.app.demo_obstacles_picture import obstacles_figure
+
+    demo = Demo(scenario="obstacles", progress=None, workdir=tmp_path / "run")
+    try:
+        summary, errs, stats = demo.run()
+    finally:
+        demo.stop_processes()
+    png, lines = tmp_path / "demo-obstacles.png", []
+    report(demo, summary, errs, png, lines.append)  # raises if the rover touched an obstacle
+    margin = demo.series.params["AVOID_MARGIN"]
+    assert margin == 2.0
+    legs = obstacle_legs(demo.series, margin)
+    assert [(leg.obstacle, leg.phase) for leg in legs] == [("wall", "to the wall"), ("post", "to the post")]
+    for leg in legs:
+        # The rover's centre, by ground truth: it stopped near the margin and never came much inside it.
+        assert margin - 0.2 <= leg.rest_m <= margin + 0.6, leg
+        assert leg.closest_m >= margin - 0.2 and not leg.touched, leg
+        assert abs(leg.rest_speed_m_s) < 0.05, leg  # at rest, while the GCS still asks for 1.0 m/s
+    # It was the bridge that stopped it: full speed on the way, then capped for an obstacle.
+    assert max(v for _, v in demo.series.speed) > 0.9
+    assert min(v for _, v in demo.series.speed) < -0.3  # and backing away from the post was not held back
+    assert stats["command"]["avoid.obstacle_stop"] >= 2
+    text = "\n".join(lines)
+    assert "closest approach" in text and "at rest" in text and f"{legs[0].rest_m:.2f} m" in text
+    data = png.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
+    fig = obstacles_figure(demo.series, legs, "obstacles")
+    try:
+        panels = [(ax.get_title(), ax.get_xlabel(), ax.get_ylabel()) for ax in fig.axes]
+        assert len(panels) == 4 and all(y for _, _, y in panels), panels
+        assert [y for _, _, y in panels[2:]] == ["speed [m/s]", "distance [m]\n(rover's centre)"]
+        assert panels[0][0] == "obstacles" and panels[1][0].startswith("zoom: the stop at the wall")
+        assert [t.get_text() for t in fig.axes[2].get_legend().get_texts()] == ["requested by the GCS",
+                                                                             "driven (ground truth)"]
+        assert [t.get_text() for t in fig.axes[3].get_legend().get_texts()] == ["to the wall", "to the post",
+                                                                             "AVOID_MARGIN"]
+        map_texts = [t.get_text() for t in fig.axes[0].texts]
+        assert f"stopped {legs[0].rest_m:.2f} m\nfrom the wall" in map_texts
+        assert f"stopped {legs[1].rest_m:.2f} m\nfrom the post" in map_texts
+        legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+        assert "AVOID_MARGIN (2.00 m) from the obstacles" in legend and "ground truth" in legend
+    finally:
+        plt.close(fig)

@@ -89,3 +89,57 @@ def test_an_empty_panel_says_why(tmp_path: Path) -> None:
     full = figure(s, [(t - 100.0, 0.01, 0.005, 1.0, 0.5) for t, *_ in s.truth], "made up")
     assert not {NO_ERRORS, NO_TRUTH} & {t.get_text() for ax in full.axes for t in ax.texts}
     plt.close(full)
+
+
+def test_the_obstacles_the_emulator_loads_are_the_ones_the_demo_measures_against(tmp_path: Path) -> None:
+    import numpy as np
+
+    from rover_bridge.app.demo_obstacles import OBSTACLES, WALL, clearance_m, scenario_toml
+    from sitl import load_scenario
+    from sitl.obstacles import Polygon, obstacle_distance_m
+
+    path = tmp_path / "scenario.toml"
+    path.write_text(SCENARIOS["obstacles"][1])
+    assert SCENARIOS["obstacles"][1] == scenario_toml()
+    shapes = load_scenario(path).obstacles
+    assert [s.vertices for s in shapes if isinstance(s, Polygon)] == [
+        tuple((round(n, 4), round(e, 4)) for n, e in o.polygon) for o in OBSTACLES]
+    # The demo's own geometry agrees with the emulator's truth (sitl/obstacles.py) around both obstacles.
+    rng = np.random.default_rng(3)
+    north, east = rng.uniform(-1.0, 10.0, 400), rng.uniform(-4.0, 7.0, 400)
+    ours = np.min([clearance_m(north, east, o.polygon) for o in OBSTACLES], axis=0)
+    truth = [obstacle_distance_m((float(n), float(e)), shapes) for n, e in zip(north, east, strict=True)]
+    assert np.allclose(ours, np.array(truth, dtype=float), atol=1e-3)
+    assert clearance_m(np.array([6.0, 8.2, 9.4]), np.array([0.0, 0.0, 0.0]), WALL.polygon).tolist() == \
+        pytest.approx([2.0, 0.0, 1.0])
+
+
+def test_each_leg_at_an_obstacle_says_its_closest_approach_and_where_it_rested() -> None:
+    from rover_bridge.app.demo_obstacles import obstacle_legs
+
+    s = Series()
+    for i in range(81):  # 1 m/s north from 0 for 6 s, stopping at 5.9 m (2.1 m from the wall), then still
+        t = 100.0 + 0.1 * i
+        north = min(5.9, 0.1 * i)
+        s.truth.append((t, north, 0.0, 0.0))
+        s.speed.append((t, 1.0 if north < 5.9 else 0.0))
+        if i in (0, 70):
+            s.mark({0: "to the wall", 70: "stop"}[i])
+    [leg] = obstacle_legs(s, 2.0)
+    assert (leg.obstacle, leg.phase, leg.margin_m) == ("wall", "to the wall", 2.0)
+    assert leg.closest_m == pytest.approx(2.1) and leg.rest_m == pytest.approx(2.1)
+    assert leg.rest_ne == pytest.approx((5.9, 0.0)) and leg.rest_speed_m_s == 0.0 and not leg.touched
+
+
+def test_an_obstacles_picture_without_a_run_says_why_its_panels_are_empty(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from rover_bridge.app.demo_obstacles_picture import NO_SPEED, obstacles_figure, plot_obstacles
+
+    fig = obstacles_figure(Series(), [], "nothing")
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    plt.close(fig)
+    assert NO_SPEED in texts and "the rover did not drive at the wall" in texts
+    plot_obstacles(Series(), [], tmp_path / "empty.png", "nothing")
+    assert (tmp_path / "empty.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -7,6 +7,10 @@ sends five "go here" targets, each once, the way ground stations and planners se
 QGroundControl and MAVSDK, SET_POSITION_TARGET_* from a script), the next when the bridge reported the
 last reached and the rover stopped; the report adds each target's arrival error by ground truth.
 
+The `obstacles` scenario (rover_bridge.app.demo_obstacles) gives the emulator a wall, a post and a proximity
+sensor, drives at each in GUIDED with velocity requests, and reports how close the bridge's avoidance let the
+rover come to each (demo-obstacles.png: rover_bridge.app.demo_obstacles_picture).
+
 Processes: `python -m sitl` (the autopilot, ground truth) <-> `python -m rover_bridge run`
 <-> this process (the GCS). The GCS sees everything through the bridge, as a real ground
 station would: ODOMETRY from the bridge, and the emulator's telemetry forwarded (its
@@ -35,42 +39,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+from rover_bridge.app import demo_obstacles as obstacles
+from rover_bridge.app.demo_route import Phase, aimed, body, earth
 from rover_bridge.app.demo_series import GotoLeg, Series
-from rover_bridge.frames import mavlink_yaw_rate_from_omega
 from rover_bridge.mavlink.dialect import mavlink, mavutil
 from rover_bridge.odometry import WheelOdometry
 
 GCS_SYSID = 255
 GCS_COMPID = 190
 REQUEST_RATE_HZ = 10.0
-BODY_MASK = 0b0000_0101_1100_0111  # velocity + yaw rate used; position, accel, yaw ignored
-EARTH_MASK = 0b0000_1101_1100_0111  # velocity used; yaw and yaw rate ignored
-
-
-@dataclass(frozen=True)
-class Request:
-    """One SET_POSITION_TARGET_LOCAL_NED the GCS repeats at 10 Hz during a phase."""
-
-    frame: int
-    vx_m_s: float
-    vy_m_s: float
-    yaw_rate_cw_rad_s: float
-    type_mask: int
-
-
-def body(v_m_s: float, omega_ccw_rad_s: float) -> Request:
-    return Request(mavlink.MAV_FRAME_BODY_NED, v_m_s, 0.0, mavlink_yaw_rate_from_omega(omega_ccw_rad_s), BODY_MASK)
-
-
-def earth(v_north_m_s: float, v_east_m_s: float) -> Request:
-    return Request(mavlink.MAV_FRAME_LOCAL_NED, v_north_m_s, v_east_m_s, 0.0, EARTH_MASK)
-
-
-@dataclass(frozen=True)
-class Phase:
-    name: str
-    duration_s: float
-    request: Request | None  # None: send nothing (the bridge's timeout brakes the rover)
 
 
 def route(scale: float = 1.0) -> list[Phase]:
@@ -162,6 +139,7 @@ SCENARIOS: dict[str, tuple[str, str]] = {
                  '[[event]]\nkind = "slip"\nwheel = "right"\nratio = 0.25\nstart_s = 18.0\nduration_s = 3.0\n'),
     "gyro-bias": ("gyro_bias_rad_s = 0.02\n", ""),
     "goto": ("", ""),  # targets, not a route (Demo._goto)
+    "obstacles": ("", obstacles.scenario_toml()),  # and a proximity sensor, GUIDED (demo_obstacles)
 }
 # What each scenario shows (`demo --help`).
 SCENARIO_HELP: dict[str, str] = {
@@ -170,6 +148,8 @@ SCENARIO_HELP: dict[str, str] = {
     "slip": "each wheel slips for a few seconds: caught by the gyro",
     "gyro-bias": "a 0.02 rad/s gyro bias: learnt at the standstill",
     "goto": "five go-here targets from the GCS (GUIDED), each arrival error",
+    "obstacles": "a wall and a post, a proximity sensor: GUIDED velocity requests at each, and the bridge "
+                 "stops the rover AVOID_MARGIN short",
 }
 
 
@@ -269,6 +249,26 @@ def latencies_from_tlog(path: Path) -> list[float]:
     return out
 
 
+def send_target(gcs: Any, fix: tuple[float, float, float, float], north: float, east: float, how: str) -> None:
+    """One go-here target, sent as ``how`` says; ``fix``: a GPS position and where the truth was then."""
+    lat0, lon0, n0, e0 = fix  # a map click: the target's offset from where the GPS puts the rover
+    lat = lat0 + math.degrees((north - n0) / EARTH_RADIUS_M)
+    lon = lon0 + math.degrees((east - e0) / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+    lat_e7, lon_e7 = round(lat * 1e7), round(lon * 1e7)
+    if how == "MISSION_ITEM_INT":
+        gcs.mav.mission_item_int_send(1, 1, 0, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                      mavlink.MAV_CMD_NAV_WAYPOINT, 2, 0, 0, 0, 0, 0, lat_e7, lon_e7, 0.0, 0)
+    elif how == "DO_REPOSITION":
+        gcs.mav.command_int_send(1, 1, mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1,
+                                 mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat_e7, lon_e7, 0.0)
+    elif how == "LOCAL_NED":
+        gcs.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK, north,
+                                                   east, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    else:
+        gcs.mav.set_position_target_global_int_send(0, 1, 1, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                                    POSITION_MASK, lat_e7, lon_e7, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+
+
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
@@ -311,9 +311,11 @@ class Demo:
         vehicle = tmp / "vehicle.toml"
         # SCHED_LOOP_RATE 100: the bridge's 50 Hz WHEEL_DISTANCE and ATTITUDE are granted (Rover's default 50
         # caps every stream at 40 Hz, and deploy/ardupilot-rover.parm says so).
-        vehicle.write_text(vehicle_toml + "[params]\nSCHED_LOOP_RATE = 100\n")
+        params = {"SCHED_LOOP_RATE": 100.0, **(obstacles.VEHICLE_PARAMS if self.scenario == "obstacles" else {})}
+        vehicle.write_text(vehicle_toml + "[params]\n" + "".join(f"{k} = {v}\n" for k, v in params.items()))
         profile = tmp / "profile.toml"
-        profile.write_text('[odometry]\ntargets = "gcs"\n')
+        profile.write_text('[odometry]\ntargets = "gcs"\n'
+                           + (obstacles.PROFILE_TOML if self.scenario == "obstacles" else ""))
         sitl_cmd = [sys.executable, "-m", "sitl", "--connect", f"udpin:127.0.0.1:{ap_port}", "--seed",
                     str(self.seed), "--start-armed", "--vehicle", str(vehicle)]
         if scenario_toml:
@@ -357,8 +359,11 @@ class Demo:
                 self._wait_ready(gcs)
                 if self.scenario == "goto":
                     self._goto(gcs)
+                elif self.scenario == "obstacles":
+                    self._guided(gcs, WheelOdometry(track_width_m=0.30), {"next_hb": 0.0}, ("AVOID_MARGIN",))
+                    self._drive(gcs, obstacles.obstacle_route())
                 else:
-                    self._drive(gcs)
+                    self._drive(gcs, route(self.scale))
             for proc, name in zip(self.procs, ("sitl", "bridge"), strict=True):
                 if proc.returncode not in (0, -signal.SIGTERM):
                     text = (tmp / f"{name}.log").read_text(errors="replace")[-2000:]
@@ -415,8 +420,7 @@ class Demo:
             self._say(f"starting: autopilot {'up' if seen_ap else '...'}, bridge {'up' if seen_odom else '...'}",
                       f"start {seen_ap} {seen_odom}")
 
-    def _drive(self, gcs: Any) -> None:
-        phases = route(self.scale)
+    def _drive(self, gcs: Any, phases: list[Phase]) -> None:
         total_s = sum(p.duration_s for p in phases)
         wheel = WheelOdometry(track_width_m=0.30)
         start = time.monotonic()
@@ -425,15 +429,20 @@ class Demo:
         for phase in phases:
             phase_end += phase.duration_s
             self.series.mark(phase.name)
+            request = phase.request
+            if request is not None and phase.aim_ne is not None and self.series.truth:
+                request = aimed(request, self.series.truth[-1][1:3], phase.aim_ne)
             while (t := time.monotonic() - start) < phase_end:
                 if t >= next_hb:
                     gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
                     next_hb += 1.0
-                if phase.request is not None and t >= next_req:
-                    r = phase.request
+                if request is not None and t >= next_req:
+                    r = request
                     gcs.mav.set_position_target_local_ned_send(
-                        int(t * 1000), 1, 1, r.frame, r.type_mask, 0, 0, 0, r.vx_m_s, r.vy_m_s, 0, 0, 0, 0, 0,
-                        r.yaw_rate_cw_rad_s)
+                        int(t * 1000), 1, 1, r.frame, r.type_mask, 0, 0, 0, r.vx_m_s, r.vy_m_s, 0, 0, 0, 0,
+                        r.yaw_cw_rad, r.yaw_rate_cw_rad_s)
+                    if self.series.truth:
+                        self.series.requested.append((self.series.truth[-1][0], r.speed_m_s))
                     next_req = t + 1.0 / REQUEST_RATE_HZ
                 msg = gcs.recv_match(blocking=True, timeout=0.01)
                 while msg is not None:
@@ -454,22 +463,34 @@ class Demo:
             self._collect(msg, wheel)
             msg = gcs.recv_match(blocking=False)
 
+    def _guided(self, gcs: Any, wheel: WheelOdometry, state: dict[str, float], params: tuple[str, ...] = ()
+                ) -> None:
+        """GUIDED, a GPS position and ground truth; and the autopilot's ``params`` (asked for once a second)."""
+        start = time.monotonic()
+        gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                  15, 0, 0, 0, 0, 0)
+        asked = -1.0
+        while (self._mode != 15 or self._fix is None or not self.series.truth
+               or any(p not in self.series.params for p in params)):
+            if time.monotonic() - start > 10.0:
+                raise RuntimeError(f"the autopilot did not report GUIDED, a GPS position and {params} within 10 s")
+            if time.monotonic() - asked >= 1.0:
+                asked = time.monotonic()
+                for p in params:
+                    gcs.mav.param_request_read_send(1, 1, p.encode(), -1)
+            self._pump(gcs, wheel, state)
+
     def _goto(self, gcs: Any) -> None:
         """The goto scenario: GUIDED, then each target of GOTO_COURSE once (module doc)."""
         wheel = WheelOdometry(track_width_m=0.30)
         state = {"next_hb": 0.0}
-        start = time.monotonic()
-        gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                                  15, 0, 0, 0, 0, 0)
-        while self._mode != 15 or self._fix is None or not self.series.truth:
-            if time.monotonic() - start > 10.0:
-                raise RuntimeError("the autopilot did not report GUIDED and a GPS position within 10 s")
-            self._pump(gcs, wheel, state)
+        self._guided(gcs, wheel, state)
         for n, (north, east, how) in enumerate(GOTO_COURSE):
             north, east = north * self.scale, east * self.scale
             reached_before, sent = self._reached, time.monotonic()
             self.series.mark(f"go here {n + 1}")
-            self._send_target(gcs, north, east, how)
+            assert self._fix is not None
+            send_target(gcs, self._fix, north, east, how)
             while not (self._reached > reached_before and self._speed_m_s < 0.01):
                 if time.monotonic() - sent > GOTO_TIMEOUT_S:
                     raise RuntimeError(f"target {n + 1} ({north:.1f} N, {east:.1f} E) not reached in "
@@ -487,25 +508,6 @@ class Demo:
         if self.progress is not None and self.progress.isatty():
             self.progress.write("\n")
 
-    def _send_target(self, gcs: Any, north: float, east: float, how: str) -> None:
-        assert self._fix is not None
-        lat0, lon0, n0, e0 = self._fix  # a map click: the target's offset from where the GPS puts the rover
-        lat = lat0 + math.degrees((north - n0) / EARTH_RADIUS_M)
-        lon = lon0 + math.degrees((east - e0) / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
-        lat_e7, lon_e7 = round(lat * 1e7), round(lon * 1e7)
-        if how == "MISSION_ITEM_INT":
-            gcs.mav.mission_item_int_send(1, 1, 0, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-                                          mavlink.MAV_CMD_NAV_WAYPOINT, 2, 0, 0, 0, 0, 0, lat_e7, lon_e7, 0.0, 0)
-        elif how == "DO_REPOSITION":
-            gcs.mav.command_int_send(1, 1, mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1,
-                                     mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat_e7, lon_e7, 0.0)
-        elif how == "LOCAL_NED":
-            gcs.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_MASK, north,
-                                                       east, 0, 0, 0, 0, 0, 0, 0, 0, 0)
-        else:
-            gcs.mav.set_position_target_global_int_send(0, 1, 1, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-                                                        POSITION_MASK, lat_e7, lon_e7, 0, 0, 0, 0, 0, 0, 0, 0, 0)
-
     def _progress_line(self, phase: str, t: float, total_s: float) -> str:
         done = int(20 * min(1.0, t / total_s))
         pose = self.series.truth[-1] if self.series.truth else (0.0, 0.0, 0.0, 0.0)
@@ -519,6 +521,11 @@ class Demo:
             if not self.series.truth or t > self.series.truth[-1][0]:
                 self.series.truth.append((t, float(msg.x), float(msg.y), self._last_yaw))
             self._speed_m_s = math.hypot(float(msg.vx), float(msg.vy))
+            along = float(msg.vx) * math.cos(self._last_yaw) + float(msg.vy) * math.sin(self._last_yaw)
+            if not self.series.speed or t > self.series.speed[-1][0]:
+                self.series.speed.append((t, along))
+        elif kind == "PARAM_VALUE":
+            self.series.params[str(msg.param_id)] = float(msg.param_value)
         elif kind == "GLOBAL_POSITION_INT" and (msg.lat or msg.lon) and self.series.truth:
             self._fix = (msg.lat * 1e-7, msg.lon * 1e-7, self.series.truth[-1][1], self.series.truth[-1][2])
         elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
@@ -572,19 +579,38 @@ def run_demo(scenario: str, scale: float, seed: int, plot_path: Path | None,
         summary, errs, _stats = demo.run()
     finally:
         demo.stop_processes()
+    return report(demo, summary, errs, plot_path, out)
+
+
+def report(demo: Demo, summary: Summary, errs: list[tuple[float, float, float, float, float]],
+           plot_path: Path | None, out: Callable[[str], None] = print) -> Summary:
+    """What a finished run prints and draws; a RuntimeError (after both) if the rover touched an obstacle."""
+    scenario = demo.scenario
     out(f"\nrover-bridge demo: scenario {scenario!r}, {len(demo.series.truth)} truth samples, "
         f"{demo.series.odometry_msgs} ODOMETRY messages\n")
     out(summary.table())
     if demo.series.goto:
         out("\n" + GotoLeg.table(demo.series.goto))
+    legs = obstacles.obstacle_legs(demo.series, demo.series.params.get("AVOID_MARGIN", math.nan))
+    if legs:
+        out("\nfrom the rover's centre to each obstacle, by ground truth:\n" + obstacles.ObstacleLeg.table(legs))
     if plot_path is not None:
         try:
-            from rover_bridge.app.demo_picture import plot
+            title = f"rover-bridge demo ({scenario})"
+            if scenario == "obstacles":
+                from rover_bridge.app.demo_obstacles_picture import plot_obstacles
 
-            plot(demo.series, errs, plot_path, f"rover-bridge demo ({scenario})")
+                plot_obstacles(demo.series, legs, plot_path, title)
+            else:
+                from rover_bridge.app.demo_picture import plot
+
+                plot(demo.series, errs, plot_path, title)
             out(f"\npicture: {plot_path}")
         except ImportError:
             out("\npicture skipped: matplotlib is not installed (pip install matplotlib)")
     if os.environ.get("ROVER_BRIDGE_DEMO_JSON"):
-        Path(os.environ["ROVER_BRIDGE_DEMO_JSON"]).write_text(json.dumps(summary.as_dict()))
+        data: dict[str, Any] = {**summary.as_dict(), "obstacles": [leg.as_dict() for leg in legs]}
+        Path(os.environ["ROVER_BRIDGE_DEMO_JSON"]).write_text(json.dumps(data))
+    if touched := [leg.obstacle for leg in legs if leg.touched]:
+        raise RuntimeError(f"the rover touched the {' and the '.join(touched)}: avoidance did not stop it")
     return summary

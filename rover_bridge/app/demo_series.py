@@ -45,6 +45,11 @@ class Series:
     odometry_msgs: int = 0
     statustext: list[str] = field(default_factory=list)
     goto: list[GotoLeg] = field(default_factory=list)
+    # The truth's speed along the rover's heading (+ forward) and the speed the GCS asked for, each stamped
+    # with the last truth sample's time when it was sent (the requests carry no autopilot time).
+    speed: list[tuple[float, float]] = field(default_factory=list)
+    requested: list[tuple[float, float]] = field(default_factory=list)
+    params: dict[str, float] = field(default_factory=dict)  # PARAM_VALUEs the GCS asked for (AVOID_MARGIN)
     # Where each segment of the route (or each go-here leg) began: its name and the boot-clock time of the
     # last ground truth then (the picture names the segments by these).
     segments: list[tuple[str, float]] = field(default_factory=list)
