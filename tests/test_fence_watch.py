@@ -12,7 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from navsupport import LAT0, LON0, FakeSource, lat_lon
-from test_command_core import Rig, overrides, profile, texts
+from test_command_core import overrides, profile, texts
+from test_proximity_core import AvoidRig
 
 from rover_bridge.command.core import CommandCore
 from rover_bridge.command.fence_download import ATTEMPTS, RESEND_S, RETRY_S, TYPE_FENCE, FenceDownload
@@ -161,7 +162,7 @@ def test_the_rover_is_placed_at_the_fix_plus_the_estimates_travel_since() -> Non
 # ----------------------------------------------------------------- the command core
 
 
-class FenceRig(Rig):
+class FenceRig(AvoidRig):
     def __init__(self, fence_params: dict[str, float] | None = None, source: FakeSource | None = None) -> None:
         super().__init__(profile(limits={"max_linear_decel_m_s2": 100.0}))
         self.source = source or FakeSource()
@@ -172,15 +173,6 @@ class FenceRig(Rig):
                   "FENCE_TYPE": 2.0, "FENCE_RADIUS": 12.0, "FENCE_MARGIN": 2.0, **(fence_params or {})}
         for name, value in params.items():
             self.param(0.02, name, value)
-
-    def param(self, t: float, name: str, value: float) -> None:
-        msg = mavlink.MAVLink_param_value_message(name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32, 900, 0)
-        self.feed(Link.AUTOPILOT, self.wire(self.ap, msg), t)
-
-    def tick(self, t: float) -> list[Outgoing]:
-        out = self.core.tick(t)
-        self.sent += [(t, o) for o in out]
-        return out
 
     def home(self, t: float) -> None:
         msg = mavlink.MAVLink_home_position_message(round(LAT0 * 1e7), round(LON0 * 1e7), 0, 0, 0, 0, [1, 0, 0, 0],
