@@ -10,7 +10,9 @@ Subcommands (each prints a table and finishes in under 2 minutes; `all` runs the
   throughput   autopilot telemetry flood routed to a GCS: highest zero-loss rate, next to raw parse_buffer
   cpu          CPU % of one core at nominal load (50 Hz wheels / IMU / control, 30 Hz ODOMETRY), next to a
                plain pymavlink router; --parts: also the bridge with its cores stubbed (where the CPU goes);
-               --without PART: also the bridge with that part of its filter costing nothing (as replay's)
+               --without PART: also the bridge with that part of its filter costing nothing (as replay's);
+               --sectors 8 [--sector-hz 10 --mode 15]: also the bridge and a router fed proximity sectors
+               (replay takes the same options)
   wakeup       CPU of a Python process that only wakes from select() (what a pass costs before any work)
   regularity   override period jitter at command.rate_hz = 50, quiet and under a 5000 msg/s GCS flood
   contention   the cpu table's nominal load while numpy keeps both cores busy, at normal priority and with the
@@ -46,6 +48,7 @@ import json
 from bridge.contention import bench_contention, burn_main
 from bridge.cpu import bench_cpu
 from bridge.free_parts import WITHOUT
+from bridge.harness import ROVER_GUIDED, ROVER_STEERING
 from bridge.hotpath import bench_hotpath
 from bridge.latency import bench_latency
 from bridge.memory import bench_memory
@@ -55,6 +58,17 @@ from bridge.replay import bench_replay, replay_main
 from bridge.startup import bench_startup
 from bridge.throughput import bench_throughput
 from bridge.wakeup import bench_wakeup
+
+
+def sectors_options(p: argparse.ArgumentParser, router: str | None) -> None:
+    """--sectors, --sector-hz, --mode (cpu, replay): what avoidance costs with a proximity sensor (issue 43)."""
+    p.add_argument("--sectors", type=int, default=0, choices=range(9), metavar="N",
+                   help=f"also run this tree's bridge{' and ' + router if router else ''} fed N proximity sectors "
+                        "(DISTANCE_SENSOR, orientation 0..N-1: a wall 5 m ahead, the rest clear) on top of the "
+                        "same traffic (default 0: none)")
+    p.add_argument("--sector-hz", type=float, default=10.0, help="each sector's rate (default %(default)s)")
+    p.add_argument("--mode", type=int, default=ROVER_STEERING,
+                   help=f"the autopilot's HEARTBEAT custom_mode (default %(default)s STEERING; {ROVER_GUIDED} GUIDED)")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -80,6 +94,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--without", action="append", choices=WITHOUT,
                    help="also run this tree's bridge with that part of the filter costing nothing (repeatable; "
                         "as replay --without, in the running process)")
+    sectors_options(p, "a router")
     p = sub.add_parser("regularity")
     p.add_argument("--seconds", type=float, default=8.0)
     p.add_argument("--repeats", type=int, default=3)
@@ -117,6 +132,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--without", action="append", choices=WITHOUT,
                    help="also replay this tree with that part of the filter costing nothing (repeatable): the most "
                         "that trimming it could save")
+    sectors_options(p, None)
     all_p = sub.add_parser("all")
     for sp in (sub.choices["latency"], sub.choices["throughput"], sub.choices["cpu"], sub.choices["regularity"],
                sub.choices["hotpath"], sub.choices["replay"], all_p):
@@ -138,6 +154,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("seconds", type=float)
     p.add_argument("repeats", type=int)
     p.add_argument("--without", choices=WITHOUT)
+    sectors_options(p, None)
     args = parser.parse_args(argv)
     if args.cmd == "_echo":
         echo_main(args.port)
@@ -148,7 +165,8 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "_burn":
         burn_main(args.seconds, args.threads)
     elif args.cmd == "_replay":
-        print(json.dumps(replay_main(args.seconds, args.repeats, args.without)))
+        print(json.dumps(replay_main(args.seconds, args.repeats, args.without, args.sectors, args.sector_hz,
+                                     args.mode)))
     elif args.cmd == "all":
         with_base = ("hotpath", "replay", "latency", "throughput", "cpu", "regularity")
         for name in ("hotpath", "replay", "latency", "throughput", "cpu", "wakeup", "regularity", "memory", "startup"):

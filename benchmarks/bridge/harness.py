@@ -172,10 +172,13 @@ def write_profile(overrides: dict[str, str], directory: str) -> str:
 
 # ------------------------------------------------------------------------------------- messages
 
-def heartbeat_ap(armed: bool = True) -> Any:
+ROVER_STEERING, ROVER_GUIDED = 3, 15  # HEARTBEAT custom_mode: the benchmarks' default mode, issue 43's
+
+
+def heartbeat_ap(armed: bool = True, custom_mode: int = ROVER_STEERING) -> Any:
     base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
     return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                             base, 0, mavlink.MAV_STATE_ACTIVE, 3)
+                                             base, custom_mode, mavlink.MAV_STATE_ACTIVE, 3)
 
 
 def heartbeat_gcs() -> Any:
@@ -192,9 +195,13 @@ class Telemetry:
     """A consistent ArduPilot-like telemetry stream of a rover driving an arc (stamps from sim time)."""
 
     V_M_S, OMEGA_RAD_S, TRACK_M = 0.4, 0.2, 0.30
+    # ArduPilot's proximity sectors as its GCS_Common send_proximity sends them (sitl/range_sensors.py): min 0,
+    # max 200 m, LASER, id 10 + sector, orientation = sector; a wall 5 m ahead, the other sectors clear (max + 1).
+    SECTOR_MAX_CM, WALL_CM, PROXIMITY_ID_START = 20000, 500, 10
 
-    def __init__(self) -> None:
+    def __init__(self, custom_mode: int = ROVER_STEERING) -> None:
         self.packer = Packer(AP_SYS, AP_COMP)
+        self.custom_mode = custom_mode
 
     def _state(self, t_s: float) -> tuple[float, float, float]:
         left = (self.V_M_S - self.OMEGA_RAD_S * self.TRACK_M / 2) * t_s
@@ -227,7 +234,13 @@ class Telemetry:
         elif kind == "SYSTEM_TIME":
             msg = mavlink.MAVLink_system_time_message(int(time.time() * 1e6), ms)
         elif kind == "HEARTBEAT":
-            msg = heartbeat_ap()
+            msg = heartbeat_ap(custom_mode=self.custom_mode)
+        elif kind.startswith("SECTOR"):  # SECTOR0 .. SECTOR7: one DISTANCE_SENSOR per proximity sector
+            sector = int(kind.removeprefix("SECTOR"))
+            distance_cm = self.WALL_CM if sector == 0 else self.SECTOR_MAX_CM + 1
+            msg = mavlink.MAVLink_distance_sensor_message(ms, 0, self.SECTOR_MAX_CM, distance_cm,
+                                                          mavlink.MAV_DISTANCE_SENSOR_LASER,
+                                                          self.PROXIMITY_ID_START + sector, sector, 0)
         else:  # pragma: no cover - programming error
             raise ValueError(kind)
         return self.packer.pack(msg)
@@ -262,11 +275,17 @@ NOMINAL_AP = (("WHEEL_DISTANCE", 50.0), ("ATTITUDE", 50.0), ("RAW_IMU", 50.0), (
               ("SYS_STATUS", 2.0), ("SYSTEM_TIME", 2.0), ("HEARTBEAT", 1.0))
 
 
-def nominal_schedule(seconds: float, t0_s: float) -> Iterator[tuple[float, str]]:
-    """(time offset, what) events of the nominal load, in time order."""
+def nominal_schedule(seconds: float, t0_s: float, sectors: int = 0,
+                     sector_hz: float = 10.0) -> Iterator[tuple[float, str]]:
+    """(time offset, what) events of the nominal load, in time order; with `sectors`, that many proximity
+    sectors (DISTANCE_SENSOR, orientation 0..sectors-1) at `sector_hz` each on top, in one burst per period
+    between the 50 Hz instants (a pass of their own: the costlier case)."""
     events: list[tuple[float, str]] = []
     for kind, hz in NOMINAL_AP:
         events += [(k / hz, kind) for k in range(int(seconds * hz))]
+    if sectors > 0 and sector_hz > 0:
+        events += [(k / sector_hz + 0.5 / sector_hz, f"SECTOR{s}") for k in range(int(seconds * sector_hz))
+                   for s in range(sectors)]
     events += [(k / 50.0 + 0.003, "REQUEST") for k in range(int(seconds * 50))]
     events += [(k / 1.0 + 0.5, "GCS_HEARTBEAT") for k in range(int(seconds))]
     events += [(k / 5.0 + 0.1, "GCS_TIMESYNC") for k in range(int(seconds * 5))]
@@ -274,12 +293,14 @@ def nominal_schedule(seconds: float, t0_s: float) -> Iterator[tuple[float, str]]
     yield from events
 
 
-def replay_frames(seconds: float) -> list[tuple[float, str, bool, bytes]]:
+def replay_frames(seconds: float, sectors: int = 0, sector_hz: float = 10.0,
+                  custom_mode: int = ROVER_STEERING) -> list[tuple[float, str, bool, bytes]]:
     """(offset, kind, from the GCS, frame) of the cpu table's nominal traffic (nominal_schedule); cpu,
-    contention and replay send it."""
-    tel, gcs = Telemetry(), Packer(GCS_SYS, GCS_COMP)
+    contention and replay send it. `sectors`, `sector_hz`: proximity sectors on top (one sequence with the
+    rest, as one autopilot sends them); `custom_mode`: the autopilot's mode in its HEARTBEAT."""
+    tel, gcs = Telemetry(custom_mode), Packer(GCS_SYS, GCS_COMP)
     out = []
-    for offset, what in nominal_schedule(seconds, 0.0):
+    for offset, what in nominal_schedule(seconds, 0.0, sectors, sector_hz):
         if what == "REQUEST":
             frame = gcs.pack(body_velocity_request(int(offset * 1000), 0.4, 0.2 * math.sin(offset)))
         elif what == "GCS_HEARTBEAT":

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import select
 import signal
 import socket
@@ -151,7 +152,10 @@ class Bridge:
         self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
         # BENCH_CPROFILE=PATH runs the bridge of this tree under cProfile timed in CPU time (not wall
         # time, which on a busy machine charges other processes' time slices to whatever was running).
+        # Another of this tree's bridges in the same run (cpu --sectors) writes to PATH.<its name>.
         prof = os.environ.get("BENCH_CPROFILE") if root == REPO else None
+        if prof and name != "bridge":
+            prof = f"{prof}.{re.sub(r'[^A-Za-z0-9]+', '_', name).strip('_')}"
         python = [sys.executable, *(["-c", _CPROFILE_MAIN.format(path=prof)] if prof else ["-m", "rover_bridge"])]
         if stub is not None:  # `cpu --parts`: one of STUBS
             python = [sys.executable, "-c", _STUB_MAIN.format(stub=stub)]
@@ -247,8 +251,8 @@ class PlainRouter(Bridge):
         self.name = name
         self.ap_port, self.gcs_port = free_udp_port(), free_udp_port()
         self.ap_addr, self.gcs_addr = (LOCAL, self.ap_port), (LOCAL, self.gcs_port)
-        self.stats_path = os.path.join(workdir, "router-stats.json")
-        self.log_path = os.path.join(workdir, "router.log")
+        self.stats_path = os.path.join(workdir, f"{name}-stats.json")  # two routers with --sectors
+        self.log_path = os.path.join(workdir, f"{name}.log")
         self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen([*os.environ.get("BENCH_PREFIX", "").split(),
                                       *self_cmd("_router", str(self.ap_port), str(self.gcs_port), self.stats_path)],

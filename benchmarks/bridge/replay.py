@@ -15,13 +15,14 @@ from pathlib import Path
 from typing import Any
 
 from bridge.free_parts import make_free
-from bridge.harness import REPO, msg_id, print_table, replay_frames, self_cmd, write_profile
+from bridge.harness import REPO, ROVER_STEERING, msg_id, print_table, replay_frames, self_cmd, write_profile
 from bridge.process import bridge_env
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import load_profile
 
 
-def replay_main(seconds: float, repeats: int, without: str | None = None) -> dict[str, Any]:
+def replay_main(seconds: float, repeats: int, without: str | None = None, sectors: int = 0, sector_hz: float = 10.0,
+                mode: int = ROVER_STEERING) -> dict[str, Any]:
     """The replay of one tree (the rover_bridge this process imports): what bench_replay prints.
 
     Passes as the running bridge makes them at this load: the autopilot's frames are read in the pass of
@@ -42,7 +43,8 @@ def replay_main(seconds: float, repeats: int, without: str | None = None) -> dic
     passes: list[tuple[float, list[tuple[float, str, Any, Any, int]], list[bytes]]] = []
     batch: list[tuple[float, str, Any, Any, int]] = []
     raw: list[bytes] = []
-    for off, kind, gcs, f in replay_frames(seconds):
+    for off, kind, gcs, f in replay_frames(seconds, sectors, sector_hz, mode):
+        kind = "DISTANCE_SENSOR" if kind.startswith("SECTOR") else kind
         msg = fastcodec.decode(f) or parser.decode(bytearray(f))
         batch.append((1000.0 + off, kind, Link.GCS if gcs else Link.AUTOPILOT, msg, msg_id(f)))
         raw.append(bytes(f))
@@ -110,10 +112,14 @@ def bench_replay(args: argparse.Namespace) -> None:
     # Each run in a fresh process, the trees taking turns (measured: the same tree read about 10 % cheaper in
     # this process than in a child, so both are children).
     roots = {"bridge": REPO, **({"base": Path(args.base).resolve()} if args.base else {})}
-    extra: dict[str, list[str]] = {name: [] for name in roots}
+    extra: dict[str, list[str]] = {name: ["--mode", str(args.mode)] for name in roots}
     for part in args.without or ():
         roots[f"bridge, {part} free"] = REPO
-        extra[f"bridge, {part} free"] = ["--without", part]
+        extra[f"bridge, {part} free"] = ["--without", part, "--mode", str(args.mode)]
+    if args.sectors and args.sector_hz > 0:  # this tree fed the proximity sectors on top (as cpu --sectors)
+        name = f"bridge + {args.sectors} sectors @ {args.sector_hz:g} Hz"
+        roots[name] = REPO
+        extra[name] = ["--sectors", str(args.sectors), "--sector-hz", str(args.sector_hz), "--mode", str(args.mode)]
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in roots}
     for rep in range(args.repeats):
         for name in list(roots) if rep % 2 == 0 else list(roots)[::-1]:
