@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rover_bridge.command.obstacles import (
     MAV_FRAME_BODY_FRD,
@@ -176,3 +178,40 @@ def test_pymavlink_messages_feed_the_picture() -> None:
     assert view.sectors[2].bearing_ccw_rad == pytest.approx(-math.pi / 2)
     assert view.sectors[0].distance_m == pytest.approx(2.5)
     assert pic.view(0.6).silent_sensors == ((1, 195, 0), (1, 195, 7))
+
+
+# The picture keeps each sector's winner from one reading to the next (the limiter asks every output): asking at
+# many times must say exactly what a picture asked once would, and `near` what `view` says with the ageing applied.
+_reading = st.tuples(st.floats(0.0, 0.3), st.sampled_from([LIDAR, SONAR]), st.integers(0, 7),
+                     st.integers(0, 1500))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(_reading, min_size=1, max_size=25), st.lists(st.floats(0.0, 2.5), min_size=1, max_size=6),
+       st.floats(0.0, 2.0))
+def test_asking_often_says_what_asking_once_would(readings: list[tuple[float, tuple[int, int, int], int, int]],
+                                                  probes: list[float], closing_m_s: float) -> None:
+    often = ObstaclePicture()
+    t = 0.0
+    fed: list[tuple[float, tuple[int, int, int], int, int]] = []
+    for gap_s, sensor, orientation, cm in readings:
+        t += gap_s
+        for probe in sorted(p for p in probes if fed and fed[-1][0] <= p < t):
+            assert_same(often, fed, probe, closing_m_s)
+        often.distance_sensor(t, sensor, orientation, cm, 20, 1200)
+        fed.append((t, sensor, orientation, cm))
+    for probe in sorted(t + p for p in probes):
+        assert_same(often, fed, probe, closing_m_s)
+
+
+def assert_same(often: ObstaclePicture, fed: list[tuple[float, tuple[int, int, int], int, int]], now_s: float,
+                closing_m_s: float) -> None:
+    once = ObstaclePicture()
+    for t, sensor, orientation, cm in fed:
+        once.distance_sensor(t, sensor, orientation, cm, 20, 1200)
+    assert often.view(now_s) == once.view(now_s)
+    aged = tuple((s.index, s.bearing_ccw_rad, s.distance_m - closing_m_s * s.age_s)
+                 for s in once.view(now_s).obstacles if s.distance_m is not None and s.age_s is not None)
+    near = often.near(now_s, closing_m_s)
+    assert sorted((s.index, s.bearing_ccw_rad, s.distance_m) for s in near.sectors) == sorted(aged)
+    assert near.silent_sensors == once.view(now_s).silent_sensors

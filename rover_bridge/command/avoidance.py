@@ -53,6 +53,7 @@ class AvoidSettings:
     crawl_speed_m_s: float = 0.2
     backup_speed_m_s: float = 0.75
     backup_deadzone_m: float = 0.10
+    proximity: bool = True  # AVOID_ENABLE bit 1: obstacles are avoided (the caller passes them or not)
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,9 +125,10 @@ def backup_speed_m_s(view: ObstacleView, settings: AvoidSettings) -> float:
 
 
 def limit_velocity(v_m_s: float, omega_rad_s: float, settings: AvoidSettings, obstacles: ObstacleView | None = None,
-                   fence: FenceQuery | None = None) -> Limited:
-    """The requested body velocity with its speed toward obstacles and fence edges capped. omega passes as is."""
-    backup = backup_speed_m_s(obstacles, settings) if obstacles is not None else 0.0
+                   fence: FenceQuery | None = None, with_backup: bool = True) -> Limited:
+    """The requested body velocity with its speed toward obstacles and fence edges capped. omega passes as is.
+    `with_backup`: work out ArduPilot's back-away speed too (reported only; the command flow skips it)."""
+    backup = backup_speed_m_s(obstacles, settings) if obstacles is not None and with_backup else 0.0
     if v_m_s == 0.0 or not math.isfinite(v_m_s):
         return Limited(v_m_s, omega_rad_s, backup_m_s=backup)
     direction = 1.0 if v_m_s > 0.0 else -1.0

@@ -27,7 +27,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from rover_bridge.frames import yaw_flu_from_yaw_frd
 from rover_bridge.mavlink.dialect import MAVLinkMessage
@@ -107,6 +107,9 @@ def sector_bearing_ccw_rad(index: int) -> float:
     return math.remainder(yaw_flu_from_yaw_frd(math.radians(index * SECTOR_WIDTH_DEG)), 2.0 * math.pi)
 
 
+_BEARINGS = tuple(sector_bearing_ccw_rad(k) for k in range(SECTOR_COUNT))
+
+
 def sector_of_cw_deg(angle_cw_deg: float) -> int:
     """The sector holding a clockwise angle from forward (AP_Proximity_Boundary_3D::get_face)."""
     return int(((angle_cw_deg + 0.5 * SECTOR_WIDTH_DEG) % 360.0) // SECTOR_WIDTH_DEG) % SECTOR_COUNT
@@ -120,10 +123,20 @@ class ObstaclePicture:
         self.sensor_timeout_s = sensor_timeout_s
         self._entries: dict[tuple[SensorKey, int], _Entry] = {}
         self._last_seen_s: dict[SensorKey, float] = {}
-        self.counts = PictureCounts()
+        self._counts = dict.fromkeys(PictureCounts.__dataclass_fields__, 0)
+        # Each sector's winning entry, kept from one reading to the next (the limiter asks every output): valid
+        # until a reading changes the entries or the oldest fresh one ages out.
+        self._best: dict[int, _Entry] = {}
+        self._best_until_s = -math.inf
+
+    @property
+    def counts(self) -> PictureCounts:
+        return PictureCounts(**self._counts)
 
     def _count(self, **more: int) -> None:
-        self.counts = replace(self.counts, **{name: getattr(self.counts, name) + n for name, n in more.items()})
+        counts = self._counts
+        for name, n in more.items():
+            counts[name] += n
 
     def distance_sensor(self, now_s: float, sensor: SensorKey, orientation: int, current_distance_cm: int,
                         min_distance_cm: int, max_distance_cm: int) -> None:
@@ -132,17 +145,17 @@ class ObstaclePicture:
             self._count(ignored_orientation=1)
             return
         self._last_seen_s[sensor] = now_s
+        self._best_until_s = -math.inf
         key = (sensor, orientation)
+        self._counts["readings"] += 1  # 80 a second from ArduPilot's 8 sectors: the plain increment
         if current_distance_cm > max_distance_cm:
-            self._count(readings=1, out_of_range_high=1)
-            self._entries[key] = _Entry(now_s, SectorState.CLEAR, sector_bearing_ccw_rad(orientation), None)
+            self._count(out_of_range_high=1)
+            self._entries[key] = _Entry(now_s, SectorState.CLEAR, _BEARINGS[orientation], None)
         elif current_distance_cm < min_distance_cm or current_distance_cm <= 0:
-            self._count(readings=1, below_min=1)
+            self._count(below_min=1)
             self._entries.pop(key, None)  # ArduPilot resets the face: no distance from this sensor
         else:
-            self._count(readings=1)
-            self._entries[key] = _Entry(now_s, SectorState.OBSTACLE, sector_bearing_ccw_rad(orientation),
-                                        current_distance_cm * 0.01)
+            self._entries[key] = _Entry(now_s, SectorState.OBSTACLE, _BEARINGS[orientation], current_distance_cm * 0.01)
 
     def obstacle_distance(self, now_s: float, sensor: SensorKey, distances_cm: Sequence[int], increment_deg: int,
                           increment_f_deg: float, angle_offset_deg: float, min_distance_cm: int,
@@ -163,6 +176,7 @@ class ObstaclePicture:
             self._count(ignored_frame=1)
             return
         self._last_seen_s[sensor] = now_s
+        self._best_until_s = -math.inf
         count = min(int(360.0 / abs(increment) + 0.5), OBSTACLE_DISTANCE_LEN, len(distances_cm))
         closest: dict[int, tuple[float, float]] = {}  # sector -> (distance m, clockwise body angle deg)
         clear: set[int] = set()
@@ -185,7 +199,7 @@ class ObstaclePicture:
             bearing = math.remainder(yaw_flu_from_yaw_frd(math.radians(angle_cw_deg)), 2.0 * math.pi)
             self._entries[(sensor, sector)] = _Entry(now_s, SectorState.OBSTACLE, bearing, distance_m)
         for sector in clear - closest.keys():
-            self._entries[(sensor, sector)] = _Entry(now_s, SectorState.CLEAR, sector_bearing_ccw_rad(sector), None)
+            self._entries[(sensor, sector)] = _Entry(now_s, SectorState.CLEAR, _BEARINGS[sector], None)
 
     def handle(self, msg: MAVLinkMessage, now_s: float, heading_cw_rad: float | None = None) -> bool:
         """Feed a DISTANCE_SENSOR or OBSTACLE_DISTANCE (others: False). The sender's (system, component, id)
@@ -205,25 +219,48 @@ class ObstaclePicture:
             return True
         return False
 
-    def view(self, now_s: float) -> ObstacleView:
-        """Every sector's state at `now_s`, and the sensors that went silent."""
+    def _fresh_best(self, now_s: float) -> dict[int, _Entry]:
+        """Each sector's winning fresh entry (an obstacle beats clear, the nearer obstacle wins)."""
+        if now_s <= self._best_until_s:
+            return self._best
         best: dict[int, _Entry] = {}
+        oldest = math.inf
         for (_, sector), entry in self._entries.items():
             if now_s - entry.t_s > self.face_timeout_s:
                 continue
+            oldest = min(oldest, entry.t_s)
             held = best.get(sector)
             if held is None or _closer(entry, held):
                 best[sector] = entry
+        self._best, self._best_until_s = best, oldest + self.face_timeout_s
+        return best
+
+    def _silent(self, now_s: float) -> tuple[SensorKey, ...]:
+        limit, seen = self.sensor_timeout_s, self._last_seen_s
+        if not seen or now_s - min(seen.values()) <= limit:
+            return ()
+        return tuple(sorted(k for k, t in seen.items() if now_s - t > limit))
+
+    def view(self, now_s: float) -> ObstacleView:
+        """Every sector's state at `now_s`, and the sensors that went silent."""
+        best = self._fresh_best(now_s)
         sectors = []
         for index in range(SECTOR_COUNT):
             found = best.get(index)
             if found is None:
-                sectors.append(Sector(index, SectorState.UNKNOWN, sector_bearing_ccw_rad(index)))
+                sectors.append(Sector(index, SectorState.UNKNOWN, _BEARINGS[index]))
             else:
                 sectors.append(Sector(index, found.state, found.bearing_ccw_rad, found.distance_m,
                                       now_s - found.t_s))
-        silent = tuple(sorted(k for k, t in self._last_seen_s.items() if now_s - t > self.sensor_timeout_s))
-        return ObstacleView(tuple(sectors), silent)
+        return ObstacleView(tuple(sectors), self._silent(now_s))
+
+    def near(self, now_s: float, closing_m_s: float) -> ObstacleView:
+        """What the limiter reads, every output: only the sectors with an obstacle, each taken `closing_m_s * age`
+        nearer (the rover may have driven that far toward it since the reading), and the silent sensors."""
+        sectors = tuple(Sector(index, SectorState.OBSTACLE, e.bearing_ccw_rad,
+                               e.distance_m - closing_m_s * (now_s - e.t_s), now_s - e.t_s)
+                        for index, e in self._fresh_best(now_s).items() if e.distance_m is not None)
+        return ObstacleView(sectors, self._silent(now_s))
 
 
 def _closer(entry: _Entry, held: _Entry) -> bool:

@@ -29,12 +29,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import replace
 
 from rover_bridge.command.avoidance import AvoidReason, AvoidSettings, FenceQuery, Limited, limit_velocity
 from rover_bridge.command.fence_watch import AVOID_FENCE, FENCE_PARAMS, FenceConfig, FenceWatch
 from rover_bridge.command.navigation import PoseSource
-from rover_bridge.command.obstacles import ObstaclePicture, ObstacleView, SectorState
+from rover_bridge.command.obstacles import ObstaclePicture
 from rover_bridge.command.param_reader import ParamReader
 from rover_bridge.command.vehicle import VehicleState
 from rover_bridge.kinematics import Twist2D
@@ -73,6 +72,7 @@ class ProximityAvoidance:
         self.fence = FenceWatch(identity, source, profile.navigation.gps_timeout_s, profile.safety.attitude_timeout_s)
         self.reason = AvoidReason.PASS  # the last output's
         self.blind = False  # a silent sensor was said
+        self._settings: AvoidSettings | None = None  # as the parameters say now; None: to be worked out again
 
     # ----------------------------------------------------------------- inputs
 
@@ -90,6 +90,7 @@ class ProximityAvoidance:
         fence and home if they are used."""
         if self.params.enabled:
             self.reader.restart(now_s)
+            self._settings = None
             self.fence.refresh(now_s)
 
     def fence_switched(self, now_s: float) -> None:
@@ -104,6 +105,7 @@ class ProximityAvoidance:
     def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> None:
         if self.params.enabled and self.from_autopilot(msg):
             self.reader.on_param_value(msg, now_s)
+            self._settings = None
             self.fence.configure(self.fence_config(), now_s)
 
     def on_home(self, msg: MAVLinkMessage) -> None:
@@ -124,6 +126,7 @@ class ProximityAvoidance:
         msgs: list[MAVLinkMessage] = []
         if self.reader.due(now_s):
             msgs += self.reader.requests(now_s, vehicle, self.identity.autopilot_component_id)
+            self._settings = None
             self.fence.configure(self.fence_config(), now_s)  # values dropped unconfirmed
         msgs += self.fence.tick(now_s)
         return self._to_autopilot(msgs) if msgs else []
@@ -150,7 +153,8 @@ class ProximityAvoidance:
     def settings(self) -> AvoidSettings:
         return AvoidSettings(margin_m=max(self.value("AVOID_MARGIN"), 0.0), decel_m_s2=self.decel_m_s2,
                              delay_s=self.delay_s, crawl_speed_m_s=self.params.crawl_speed_m_s,
-                             backup_speed_m_s=self.value("AVOID_BACKUP_SPD"))
+                             backup_speed_m_s=self.value("AVOID_BACKUP_SPD"),
+                             proximity=bool(int(self.value("AVOID_ENABLE")) & AVOID_PROXIMITY))
 
     def limit(self, target: Twist2D, now_s: float, mode: int | None,
               moving_m_s: float) -> tuple[Twist2D, list[Outgoing]]:
@@ -161,16 +165,18 @@ class ProximityAvoidance:
             return target, []
         if mode == ROVER_MANUAL and not self.params.in_manual:
             return target, self._said(Limited(target.v_m_s, target.omega_rad_s), now_s)
-        settings = self.settings()
+        settings = self._settings
+        if settings is None:
+            settings = self._settings = self.settings()
         out: list[Outgoing] = []
         view = None
-        if picture is not None and int(self.value("AVOID_ENABLE")) & AVOID_PROXIMITY:
-            view = _aged(picture.view(now_s), abs(moving_m_s))
+        if picture is not None and settings.proximity:
+            view = picture.near(now_s, abs(moving_m_s))
             out += self._blind(view.blind, now_s)
         fence: FenceQuery | None = None
         if fences is not None:
             fence = self.fence.query(now_s)
-        limited = limit_velocity(target.v_m_s, target.omega_rad_s, settings, view, fence)
+        limited = limit_velocity(target.v_m_s, target.omega_rad_s, settings, view, fence, with_backup=False)
         if fences is not None and fence is None and abs(limited.v_m_s) > settings.crawl_speed_m_s:
             crawl = math.copysign(settings.crawl_speed_m_s, limited.v_m_s)  # a fence on, the rover not placed
             limited = Limited(crawl, target.omega_rad_s, AvoidReason.FENCE_UNKNOWN, settings.crawl_speed_m_s)
@@ -214,13 +220,3 @@ class ProximityAvoidance:
             return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, text, now_s, key="avoid.blind")
         return self.reporter.statustext(mavlink.MAV_SEVERITY_INFO, "RB: proximity sensor back", now_s,
                                         key="avoid.blind")
-
-
-def _aged(view: ObstacleView, speed_m_s: float) -> ObstacleView:
-    """Each obstacle `speed * age` nearer: the rover may have driven that far toward it since the reading."""
-    if speed_m_s <= 0.0:
-        return view
-    sectors = tuple(replace(s, distance_m=s.distance_m - speed_m_s * s.age_s)
-                    if s.state is SectorState.OBSTACLE and s.distance_m is not None and s.age_s else s
-                    for s in view.sectors)
-    return replace(view, sectors=sectors)
