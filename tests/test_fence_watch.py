@@ -196,7 +196,7 @@ def test_the_circle_fence_caps_the_bridges_drivers_once_home_is_known_and_crawls
     rig.at(0.0, 0.1)
     assert overrides(rig.local(0.11, vx=0.5, mask=3527).out) != [(1739, 1739)]  # not placed: a crawl
     assert rig.core.commanded.v_m_s == pytest.approx(0.2)
-    assert "RB: fence on, position unknown: crawling (0.2 m/s)" in texts(rig.sent)
+    assert "RB: fence on, no home yet: crawling (0.2 m/s)" in texts(rig.sent)
     assert home_requests(rig.tick(2.1)) == 1  # asked again until it comes
     ack = mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED, 0, 0,
                                               *US)
@@ -222,6 +222,7 @@ def test_without_a_fresh_gps_fix_the_rover_crawls() -> None:
     rig.at(0.0, 0.1)
     rig.local(0.11, vx=0.5, mask=3527)
     assert rig.core.commanded.v_m_s == pytest.approx(0.2)
+    assert "RB: fence on, no GPS fix: crawling (0.2 m/s)" in texts(rig.sent)
 
 
 def test_fence_enable_0_or_avoid_enable_without_bit_0_changes_nothing() -> None:

@@ -157,6 +157,20 @@ class FenceWatch:
         return FenceQuery(fences, fix_n + now.north_m - then.north_m, fix_e + now.east_m - then.east_m,
                           now.yaw_cw_rad)
 
+    def unplaced(self, now_s: float) -> str:
+        """Why `query` says None now, in a few words for the STATUSTEXT."""
+        source = self.source
+        if self.home is None:
+            return "no home yet"
+        if not self.known:
+            return "fence not downloaded yet"
+        if source is None or source.nav_pose(now_s) is None:
+            return "no position estimate"
+        gps = source.gps
+        if gps is None or now_s - gps[0] > self.gps_timeout_s:
+            return "no GPS fix"
+        return "no heading"
+
     def _autopilot(self) -> tuple[int, int]:
         vehicle = self.identity.vehicle_system_id
         return (0 if vehicle is None else vehicle), self.identity.autopilot_component_id

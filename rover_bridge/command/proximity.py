@@ -196,14 +196,15 @@ class ProximityAvoidance:
         self._count(f"avoid.{reason.value}")
         if group is None or group == before:
             return []
-        return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, self._text(reason), now_s,
+        return self.reporter.statustext(mavlink.MAV_SEVERITY_WARNING, self._text(reason, now_s), now_s,
                                         key=f"avoid.{group}")
 
-    def _text(self, reason: AvoidReason) -> str:
+    def _text(self, reason: AvoidReason, now_s: float) -> str:
         if reason is AvoidReason.FENCE_BREACHED:
             return "RB: outside the fence: only the way back in"
         if reason is AvoidReason.FENCE_UNKNOWN:
-            return f"RB: fence on, position unknown: crawling ({self.params.crawl_speed_m_s:g} m/s)"
+            cause = self.fence.unplaced(now_s)
+            return f"RB: fence on, {cause}: crawling ({self.params.crawl_speed_m_s:g} m/s)"
         if reason in (AvoidReason.FENCE_SLOW, AvoidReason.FENCE_STOP):
             config = self.fence.config
             margin_m = 0.0 if config is None else config.margin_m
