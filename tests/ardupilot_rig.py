@@ -16,6 +16,7 @@ binary's tree gives the default parameter files (<tree>/build/sitl/bin/ardurover
 from __future__ import annotations
 
 import collections
+import json
 import math
 import os
 import signal
@@ -26,12 +27,22 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
+import pytest
 from navmetrics import Point
 
 from rover_bridge.app.demo import free_udp_port
 from rover_bridge.mavlink.dialect import mavlink, mavutil
+
+T = TypeVar("T")
+BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
+# Every real-SITL test module's marks (`pytestmark = REAL_SITL`): CI's real-SITL set selects them by the marker, and
+# without the binary they are skipped, saying why.
+REAL_SITL = [
+    pytest.mark.ardupilot_sitl,
+    pytest.mark.skipif(not BINARY, reason="ROVER_BRIDGE_ARDUROVER does not name an ardurover binary"),
+]
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "params" / "ardupilot-sitl-skid.toml"
@@ -312,3 +323,14 @@ def bridged(binary: str, instance: int, extra: str, workdir: Path, streams: dict
             bridge.gcs.each = None
             bridge.close()
         sitl.close()
+
+
+def through_bridge(binary: str, instance: int, extra: str, workdir: Path, streams: dict[int, int] | None,
+                   drive: Callable[[Sitl, Bridge], T]) -> tuple[T, dict[str, int]]:
+    """`drive` on a `bridged` SITL, then the bridge stopped: what drive returned and the bridge's `command` counters
+    (its --stats-json)."""
+    stats = workdir / "stats.json"
+    with bridged(binary, instance, extra, workdir, streams, ("--stats-json", str(stats))) as (sitl, bridge):
+        result = drive(sitl, bridge)
+        bridge.stop()
+        return result, json.loads(stats.read_text())["command"]

@@ -28,16 +28,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from ardupilot_rig import EXTRA_PARAMS, stop_process
+from ardupilot_rig import BINARY, EXTRA_PARAMS, REAL_SITL, stop_process
 from lockstep import free_udp_port
 
 from rover_bridge.mavlink.dialect import mavlink, mavutil
 
-BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
-pytestmark = [
-    pytest.mark.ardupilot_sitl,
-    pytest.mark.skipif(not BINARY, reason="ROVER_BRIDGE_ARDUROVER does not name an ardurover binary"),
-]
+pytestmark = REAL_SITL
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "params" / "ardupilot-sitl-skid.toml"

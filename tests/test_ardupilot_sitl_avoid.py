@@ -18,27 +18,19 @@ Runs only when ROVER_BRIDGE_ARDUROVER names an `ardurover` binary. SITL instance
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import pytest
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_sitl_control as bench
-from ardupilot_rig import Link, Sitl, alone, bridged
+from ardupilot_rig import BINARY, REAL_SITL, Bridge, Link, Sitl, alone, through_bridge
 
 from rover_bridge.mavlink.dialect import mavlink
 
-BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
-pytestmark = [
-    pytest.mark.ardupilot_sitl,
-    pytest.mark.skipif(not BINARY, reason="ROVER_BRIDGE_ARDUROVER does not name an ardurover binary"),
-]
+pytestmark = REAL_SITL
 INSTANCE_BRIDGE, INSTANCE_ALONE = 11, 12
 AVOID_PARAMS = "PRX1_TYPE 10\nFENCE_ENABLE 0\nAVOID_ENABLE 2\nAVOID_MARGIN 2\n"
 WALL_AHEAD_M, BEHIND_M, HALF_WIDTH_M = 10.0, 30.0, 10.0  # the rectangle: 40 m along the heading, 20 m across
@@ -135,20 +127,17 @@ def run_alone(workdir: Path) -> Approach:
         return approach(bench.Driver("ArduPilot alone", sitl, gcs))
 
 
-def run_bridge(workdir: Path) -> tuple[Approach, dict[str, int], int]:
-    """The approach through the bridge, its `command` counters and how many DISTANCE_SENSOR its GCS saw."""
-    stats = workdir / "stats.json"
-    with bridged(BINARY, INSTANCE_BRIDGE, bench.BRIDGE_PARAMS + AVOID_PARAMS, workdir, bench.STREAMS,
-                 ("--stats-json", str(stats))) as (sitl, bridge):
-        result = approach(bench.Driver("bridge", sitl, bridge.gcs))
-        seen = len(bridge.gcs.of("DISTANCE_SENSOR"))
-        bridge.stop()
-        return result, json.loads(stats.read_text())["command"], seen
+def run_bridge(workdir: Path) -> tuple[tuple[Approach, int], dict[str, int]]:
+    """The approach through the bridge and how many DISTANCE_SENSOR its GCS saw; its `command` counters."""
+    def drive(sitl: Sitl, bridge: Bridge) -> tuple[Approach, int]:
+        return approach(bench.Driver("bridge", sitl, bridge.gcs)), len(bridge.gcs.of("DISTANCE_SENSOR"))
+
+    return through_bridge(BINARY, INSTANCE_BRIDGE, bench.BRIDGE_PARAMS + AVOID_PARAMS, workdir, bench.STREAMS, drive)
 
 
 def test_the_bridge_stops_short_of_a_wall_as_ardupilot_alone_does(tmp_path: Path) -> None:
     alone = run_alone(tmp_path)
-    ours, counters, forwarded = run_bridge(tmp_path)
+    (ours, forwarded), counters = run_bridge(tmp_path)
     avoid = {k: v for k, v in counters.items() if k.startswith("avoid.")}
     table = (f"closest {ours.closest_m:.2f} m / alone {alone.closest_m:.2f} m; rest {ours.rest_m:.2f} m / alone "
              f"{alone.rest_m:.2f} m; backed {ours.backed_m:.2f} m / alone {alone.backed_m:.2f} m; bridge {avoid}, "

@@ -8,20 +8,14 @@ Runs only when ROVER_BRIDGE_ARDUROVER names an `ardurover` binary (.ci/run sets 
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
-import pytest
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_sitl_control as bench
+from ardupilot_rig import BINARY, REAL_SITL
 
-BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
-pytestmark = [
-    pytest.mark.ardupilot_sitl,
-    pytest.mark.skipif(not BINARY, reason="ROVER_BRIDGE_ARDUROVER does not name an ardurover binary"),
-]
+pytestmark = REAL_SITL
 INSTANCE = 8  # SITL's ports 5760 + 10 x instance (and + 1 for ArduPilot alone): not the other real-SITL tests' 4-6
 STEPS = ("step 0->0.5", "step 0.5->1.0", "step 1.0->1.5")
 

@@ -17,27 +17,19 @@ Runs only when ROVER_BRIDGE_ARDUROVER names an `ardurover` binary. SITL instance
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import pytest
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_sitl_control as bench
-from ardupilot_rig import alone, bridged
+from ardupilot_rig import BINARY, REAL_SITL, Bridge, Sitl, alone, through_bridge
 
 from rover_bridge.mavlink.dialect import mavlink
 
-BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
-pytestmark = [
-    pytest.mark.ardupilot_sitl,
-    pytest.mark.skipif(not BINARY, reason="ROVER_BRIDGE_ARDUROVER does not name an ardurover binary"),
-]
+pytestmark = REAL_SITL
 INSTANCE_BRIDGE, INSTANCE_ALONE = 14, 15
 FENCE_RADIUS_M, FENCE_MARGIN_M = 12.0, 2.0
 FENCE_PARAMS = (f"PRX1_TYPE 0\nFENCE_ENABLE 1\nFENCE_TYPE 2\nFENCE_RADIUS {FENCE_RADIUS_M:g}\n"
@@ -86,20 +78,18 @@ def run_alone(workdir: Path) -> Reach:
         return drive_out(bench.Driver("ArduPilot alone", sitl, gcs))
 
 
-def run_bridge(workdir: Path) -> tuple[Reach, dict[str, int], list[str]]:
-    """The drive through the bridge, its `command` counters and what it said about fences at its GCS."""
-    stats = workdir / "stats.json"
-    with bridged(BINARY, INSTANCE_BRIDGE, bench.BRIDGE_PARAMS + FENCE_PARAMS, workdir, STREAMS,
-                 ("--stats-json", str(stats))) as (sitl, bridge):
+def run_bridge(workdir: Path) -> tuple[tuple[Reach, list[str]], dict[str, int]]:
+    """The drive through the bridge and what it said about fences at its GCS; its `command` counters."""
+    def drive(sitl: Sitl, bridge: Bridge) -> tuple[Reach, list[str]]:
         result = drive_out(bench.Driver("bridge", sitl, bridge.gcs))
-        said = [t for t in bridge.gcs.texts() if t.startswith("RB:") and "fence" in t.lower()]
-        bridge.stop()
-        return result, json.loads(stats.read_text())["command"], said
+        return result, [t for t in bridge.gcs.texts() if t.startswith("RB:") and "fence" in t.lower()]
+
+    return through_bridge(BINARY, INSTANCE_BRIDGE, bench.BRIDGE_PARAMS + FENCE_PARAMS, workdir, STREAMS, drive)
 
 
 def test_the_bridge_stays_inside_the_circle_fence_as_ardupilot_alone_does(tmp_path: Path) -> None:
     anchor = run_alone(tmp_path)
-    ours, counters, said = run_bridge(tmp_path)
+    (ours, said), counters = run_bridge(tmp_path)
     avoid = {k: v for k, v in counters.items() if k.startswith("avoid.")}
     table = (f"farthest from home {ours.farthest_m:.2f} m / alone {anchor.farthest_m:.2f} m; at rest "
              f"{ours.rest_m:.2f} m / alone {anchor.rest_m:.2f} m (fence {FENCE_RADIUS_M:g} m, margin "

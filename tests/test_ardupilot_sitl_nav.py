@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import socket
 import threading
 import time
@@ -28,17 +27,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from ardupilot_rig import EARTH_RADIUS_M, PARM, PROFILE, Bridge, Link, Sitl
+from ardupilot_rig import BINARY, EARTH_RADIUS_M, PARM, PROFILE, REAL_SITL, Bridge, Link, Sitl
 from navmetrics import Point, distance_to_path_m, route_figures
 
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import load_profile
 
-BINARY = os.environ.get("ROVER_BRIDGE_ARDUROVER", "")
-pytestmark = [
-    pytest.mark.ardupilot_sitl,
-    pytest.mark.skipif(not BINARY, reason="ROVER_BRIDGE_ARDUROVER does not name an ardurover binary"),
-]
+pytestmark = REAL_SITL
 
 ANCHOR_INSTANCE, BRIDGE_INSTANCE = 5, 6  # ports 5760 + 10 * I (SERIAL0), + 2 (SERIAL1)
 MANUAL, HOLD, AUTO, RTL, SMART_RTL = 0, 4, 10, 11, 12
