@@ -257,3 +257,17 @@ def test_a_fence_switched_by_command_is_read_again() -> None:
     asked = [o.msg.param_id for o in rig.tick(3.2) if o.msg.get_type() == "PARAM_REQUEST_READ"]
     assert {"FENCE_ENABLE", "FENCE_TYPE", "FENCE_RADIUS", "FENCE_MARGIN"} <= set(asked)
     assert rig.core.avoid.fence.config is not None and rig.core.avoid.fence.config.enabled  # kept meanwhile
+
+
+def test_a_lone_fence_enable_0_does_not_switch_the_fence_off_until_the_autopilot_says_it() -> None:
+    rig = FenceRig()
+    rig.home(0.05)
+    rig.tick(2.5)  # all answered
+    rig.param(2.6, "FENCE_ENABLE", 0.0)  # one frame: forged, corrupted, or a GCS's PARAM_SET
+    rig.at(9.95, 2.61)
+    rig.local(2.62, vx=0.5, mask=3527)
+    assert rig.core.commanded.v_m_s == 0.0  # still kept: at the margin
+    assert "FENCE_ENABLE" in [o.msg.param_id for o in rig.tick(2.8) if o.msg.get_type() == "PARAM_REQUEST_READ"]
+    rig.param(2.81, "FENCE_ENABLE", 0.0)  # the autopilot's word
+    rig.local(2.82, vx=0.5, mask=3527)
+    assert rig.core.commanded.v_m_s == pytest.approx(0.5)

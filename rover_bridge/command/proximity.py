@@ -142,10 +142,12 @@ class ProximityAvoidance:
         return ARDUPILOT_DEFAULTS[name] if said is None else said
 
     def fence_config(self) -> FenceConfig | None:
-        """FENCE_* and AVOID_ENABLE bit 0 as the autopilot has said them; None until it has (no fence)."""
+        """FENCE_* and AVOID_ENABLE bit 0 as the autopilot has said them; None until it has (no fence). While one
+        is unconfirmed (a lone PARAM_VALUE that changed it, or a read after the autopilot came back) the last word
+        stands: a single forged FENCE_ENABLE 0 must not switch the fence off."""
         said = [self.reader.confirmed(name) for name in FENCE_PARAMS]
         if any(v is None for v in said):
-            return None
+            return self.fence.config
         enable, kind, radius, margin = (float(v or 0.0) for v in said)
         enabled = int(enable) == 1 and bool(int(self.value("AVOID_ENABLE")) & AVOID_FENCE)
         return FenceConfig(enabled, int(kind), radius, max(margin, 0.0))
