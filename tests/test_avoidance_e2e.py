@@ -24,11 +24,12 @@ REPO = Path(__file__).resolve().parents[1]
 GUIDED = 15
 
 
-def drive_at_the_wall(prx: bool = True, avoid_enable: float = 3.0) -> dict[str, Any]:
+def drive_at_the_wall(prx: bool = True, avoid_enable: float = 3.0,
+                      vehicle: VehicleConfig | None = None) -> dict[str, Any]:
     profile = Profile()
     profile = dataclasses.replace(profile, limits=dataclasses.replace(profile.limits, max_linear_m_s=1.0))
     params = (("PRX1_TYPE", 10.0),) if prx else ()
-    vehicle = VehicleConfig(params=params)
+    vehicle = vehicle or VehicleConfig(params=params)
     rig = Lockstep(profile, vehicle, seed=5, scenario=load_scenario(REPO / "sitl/scenarios/wall-ahead.toml"))
     try:
         rig.emu.set_param("AVOID_ENABLE", avoid_enable)
@@ -58,6 +59,18 @@ def test_the_rover_stops_short_of_a_wall_the_proximity_sensor_sees() -> None:
     assert "RB: obstacle ahead: slowing to stop 2 m short" in run["texts"]
     assert run["counters"].get("avoid.obstacle_stop", 0) >= 1
     assert run["counters"].get("avoid.sensor_silent", 0) == 0  # asked at 10 Hz: never silent
+
+
+@pytest.mark.parametrize("sensor", [
+    VehicleConfig(params=(("RNGFND1_TYPE", 100.0), ("RNGFND1_ORIENT", 0.0), ("RNGFND1_MAX", 12.0))),
+    VehicleConfig(obstacle_distance_hz=10.0, obstacle_distance_fov_deg=87.0, obstacle_distance_max_m=10.0),
+], ids=["forward rangefinder", "companion depth camera (OBSTACLE_DISTANCE)"])
+def test_a_forward_rangefinder_or_a_depth_camera_alone_stops_it_too(sensor: VehicleConfig) -> None:
+    run = drive_at_the_wall(vehicle=sensor)
+    assert run["closest"] >= 2.0 - 0.3, run
+    assert run["rest"] <= 2.0 + 1.0, run
+    assert not run["collided"], run
+    assert run["counters"].get("avoid.obstacle_stop", 0) >= 1, run
 
 
 def test_without_a_sensor_or_with_avoid_enable_0_it_drives_through_as_before() -> None:
