@@ -136,8 +136,7 @@ class BridgeCore:
             self._ap_always = self._ap_always | _DEMAND_IDS  # decoded from now on
             self._autopilot_reads = self._ap_always | self._ap_gyro
         elif (msg_id == _DISTANCE_SENSOR and from_autopilot and self._ranges is not None and not self._ranges.wanted
-              and inc.msg.get_srcComponent() == self.identity.autopilot_component_id
-              and self.command.avoid.picture is not None):
+              and self.identity.from_autopilot(inc.msg) and self.command.avoid.picture is not None):
             re_ = Reaction(re_.consumed, (*re_.out, *self.estimate.streams.want(self._ranges.name, now_s)))
         if not (rc.out or re_.out or held):
             return re_ if re_.consumed else rc

@@ -294,14 +294,13 @@ class CommandCore:
         return Reaction(consumed=False, out=tuple(self.wheels.advance(now_s, force_output=False)))
 
     def _on_command_ack(self, msg: MAVLinkMessage, now_s: float) -> Reaction:
-        if (msg.get_srcSystem() != self.identity.vehicle_system_id
-                or msg.get_srcComponent() != self.identity.autopilot_component_id):
+        if not self.identity.from_autopilot(msg):
             return NOTHING  # another component's answer (or a forged one) says nothing of the autopilot's mode
         command = int(msg.command)
         if command == mavlink.MAV_CMD_DO_FENCE_ENABLE and int(msg.result) == mavlink.MAV_RESULT_ACCEPTED:
             self.avoid.fence_switched(now_s)
             return NOTHING
-        if command == mavlink.MAV_CMD_REQUEST_MESSAGE and self._to_us(msg):
+        if command == mavlink.MAV_CMD_REQUEST_MESSAGE and self.identity.addressed_to_bridge(msg):
             return Reaction(consumed=True)  # the answer to the fence's request for home: not the GCS's business
         if int(msg.command) == mavlink.MAV_CMD_DO_SET_MODE:
             ours = self.targets.mode_change_ack(msg, now_s)
@@ -317,10 +316,6 @@ class CommandCore:
             self.wheels.drop_request()
             out += self.wheels.advance(now_s, force_output=False)
         return Reaction(consumed=True, out=tuple(out))
-
-    def _to_us(self, msg: MAVLinkMessage) -> bool:
-        return bool(msg.target_system == self.identity.own_system_id
-                    and msg.target_component == self.identity.component_id)
 
     def _count(self, name: str) -> None:
         self.counters[name] = self.counters.get(name, 0) + 1

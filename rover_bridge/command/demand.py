@@ -123,8 +123,7 @@ class AutopilotNavigation:
 
     def decode(self, msg: MAVLinkMessage) -> tuple[int, int] | None:
         """The two demand outputs' PWM (us), or None for another system's or port's report."""
-        if (msg.get_srcSystem() != self.identity.vehicle_system_id
-                or msg.get_srcComponent() != self.identity.autopilot_component_id or int(msg.port) != 0):
+        if not self.identity.from_autopilot(msg) or int(msg.port) != 0:
             return None
         return int(getattr(msg, self._fields[0])), int(getattr(msg, self._fields[1]))
 
@@ -146,8 +145,7 @@ class AutopilotNavigation:
 
     def on_nav(self, msg: MAVLinkMessage, now_s: float) -> None:
         """NAV_CONTROLLER_OUTPUT: how far the autopilot says its waypoint is (for the stuck-at-trim check)."""
-        if (msg.get_srcSystem() == self.identity.vehicle_system_id
-                and msg.get_srcComponent() == self.identity.autopilot_component_id):
+        if self.identity.from_autopilot(msg):
             self._wp_dist = (now_s, float(msg.wp_dist))
 
     def handle(self, msg: MAVLinkMessage, now_s: float) -> Reaction:

@@ -105,9 +105,7 @@ class FenceWatch:
 
     def addressed_to_us(self, msg: MAVLinkMessage) -> bool:
         """A mission message of type FENCE for the bridge (its own download): the caller consumes it."""
-        return (int(getattr(msg, "mission_type", 0)) == TYPE_FENCE
-                and msg.target_system == self.identity.own_system_id
-                and msg.target_component == self.identity.component_id)
+        return int(getattr(msg, "mission_type", 0)) == TYPE_FENCE and self.identity.addressed_to_bridge(msg)
 
     def on_mission(self, msg: MAVLinkMessage, now_s: float) -> list[MAVLinkMessage]:
         """MISSION_COUNT / MISSION_ITEM_INT / MISSION_ACK from the autopilot: ours go to the download; another

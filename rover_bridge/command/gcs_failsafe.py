@@ -169,7 +169,7 @@ class GcsFailsafeWatch:
         return [Outgoing(Link.AUTOPILOT, m, self.identity.own_system_id, self.identity.component_id) for m in msgs]
 
     def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> list[Outgoing]:
-        if not self.active or not self._from_autopilot(msg) or not self.reader.on_param_value(msg, now_s):
+        if not self.active or not self.identity.from_autopilot(msg) or not self.reader.on_param_value(msg, now_s):
             return []
         params = FailsafeParams.from_values(self.reader.values)
         self.silence.rearm(params)
@@ -183,7 +183,7 @@ class GcsFailsafeWatch:
 
     def on_statustext(self, msg: MAVLinkMessage) -> bool:
         """True if ArduPilot's "GCS Failsafe" (or "Radio Failsafe") ends a silence."""
-        if not self.active or not self._from_autopilot(msg):
+        if not self.active or not self.identity.from_autopilot(msg):
             return False
         if str(msg.text).rstrip("\x00") not in AUTOPILOT_FAILSAFE_TEXTS:
             return False
@@ -203,6 +203,3 @@ class GcsFailsafeWatch:
             self._count("gcs_failsafe.silent")
         return now_silent
 
-    def _from_autopilot(self, msg: MAVLinkMessage) -> bool:
-        return bool(msg.get_srcSystem() == self.identity.vehicle_system_id
-                    and msg.get_srcComponent() == self.identity.autopilot_component_id)

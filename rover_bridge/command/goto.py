@@ -315,5 +315,4 @@ class PositionTargets:
 
     def echo_to_hide(self, msg: MAVLinkMessage) -> bool:
         """The autopilot's own navigation feedback, while the bridge's stands for it (AUTOPILOT_NAV_ECHOES)."""
-        return (self.goal is not None and msg.get_srcSystem() == self.identity.vehicle_system_id
-                and msg.get_srcComponent() == self.identity.autopilot_component_id)
+        return self.goal is not None and self.identity.from_autopilot(msg)

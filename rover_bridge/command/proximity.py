@@ -98,23 +98,19 @@ class ProximityAvoidance:
         if self.params.enabled:
             self.reader.refresh(now_s)
 
-    def from_autopilot(self, msg: MAVLinkMessage) -> bool:
-        return bool(msg.get_srcSystem() == self.identity.vehicle_system_id
-                    and msg.get_srcComponent() == self.identity.autopilot_component_id)
-
     def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> None:
-        if self.params.enabled and self.from_autopilot(msg):
+        if self.params.enabled and self.identity.from_autopilot(msg):
             self.reader.on_param_value(msg, now_s)
             self._settings = None
             self.fence.configure(self.fence_config(), now_s)
 
     def on_home(self, msg: MAVLinkMessage) -> None:
-        if self.params.enabled and self.from_autopilot(msg):
+        if self.params.enabled and self.identity.from_autopilot(msg):
             self.fence.on_home(msg)
 
     def on_mission(self, msg: MAVLinkMessage, now_s: float) -> tuple[bool, list[Outgoing]]:
         """A mission message from the autopilot: (consumed: it answers the bridge's own download, the messages)."""
-        if not self.params.enabled or not self.from_autopilot(msg):
+        if not self.params.enabled or not self.identity.from_autopilot(msg):
             return False, []
         ours = self.fence.addressed_to_us(msg)
         return ours, self._to_autopilot(self.fence.on_mission(msg, now_s))

@@ -118,8 +118,7 @@ class VehicleState:
             self.mode_requested = None
 
     def on_attitude(self, msg: MAVLinkMessage, now_s: float) -> None:
-        if (msg.get_srcSystem() != self.identity.vehicle_system_id
-                or msg.get_srcComponent() != self.identity.autopilot_component_id):
+        if not self.identity.from_autopilot(msg):
             return
         yaw = float(msg.yaw)
         if not math.isfinite(yaw):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from rover_bridge.mavlink.dialect import mavlink
+from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.params import Profile
 
 # Autopilot types we take a vehicle heartbeat from; GCSs and companions also send HEARTBEAT.
@@ -40,6 +40,17 @@ class Identity:
     def own_system_id(self) -> int:
         """System id of the bridge's own messages: the vehicle's (it is part of the vehicle)."""
         return self.vehicle_system_id or 1
+
+    def from_autopilot(self, msg: MAVLinkMessage) -> bool:
+        """Sent by the vehicle's autopilot (its system and component as learnt): not a companion, a peripheral or
+        another vehicle."""
+        return bool(msg.get_srcSystem() == self.vehicle_system_id
+                    and msg.get_srcComponent() == self.autopilot_component_id)
+
+    def addressed_to_bridge(self, msg: MAVLinkMessage) -> bool:
+        """Addressed to the bridge itself (an answer to its own request): not a ground station's business."""
+        return bool(getattr(msg, "target_system", None) == self.own_system_id
+                    and getattr(msg, "target_component", None) == self.component_id)
 
     def is_autopilot_heartbeat(self, msg: mavlink.MAVLink_heartbeat_message, relearn: bool = False) -> bool:
         """True for a heartbeat from the vehicle's autopilot: the system and component of the first vehicle
