@@ -71,6 +71,18 @@ def omega_toward_heading(target_cw_rad: float, current_cw_rad: float, kp_1_s: fl
 
 # Sign of each axis of (x, y, z, roll, pitch, yaw) - or of their rates - from x-forward/y-left/z-up
 # to FRD: a half turn about x, so y, z, pitch and yaw change sign, x and roll do not.
+EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial, as ArduPilot's Location uses
+
+
+def ne_from_lat_lon(origin_lat_deg: float, origin_lon_deg: float, lat_deg: float,
+                    lon_deg: float) -> tuple[float, float]:
+    """(north m, east m) of a lat/lon from the origin, on the flat patch about the origin (over the few hundred
+    metres a target or a fence spans, the error is under a centimetre)."""
+    north = math.radians(lat_deg - origin_lat_deg) * EARTH_RADIUS_M
+    east = math.radians(lon_deg - origin_lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(origin_lat_deg))
+    return north, east
+
+
 FLU_TO_FRD_SIGNS = (1.0, -1.0, -1.0, 1.0, -1.0, -1.0)
 
 

@@ -42,6 +42,7 @@ from typing import Any, TextIO
 from rover_bridge.app import demo_obstacles as obstacles
 from rover_bridge.app.demo_route import Phase, aimed, body, earth
 from rover_bridge.app.demo_series import GotoLeg, Series
+from rover_bridge.frames import EARTH_RADIUS_M
 from rover_bridge.mavlink.dialect import mavlink, mavutil
 from rover_bridge.odometry import WheelOdometry
 
@@ -77,7 +78,6 @@ GOTO_COURSE = ((3.0, 0.0, "MISSION_ITEM_INT"), (3.0, 2.0, "DO_REPOSITION"), (1.5
                (0.0, 2.0, "GLOBAL_INT"), (0.0, 0.0, "MISSION_ITEM_INT"))
 GOTO_TIMEOUT_S = 30.0
 POSITION_MASK = 0x0DF8  # SET_POSITION_TARGET_*: x, y (z) used; velocity, acceleration, yaw ignored
-EARTH_RADIUS_M = 6378137.0
 
 
 @dataclass(frozen=True)

@@ -22,10 +22,9 @@ import enum
 import math
 from dataclasses import dataclass
 
-from rover_bridge.command.fences import Fences, fence_clearance
+from rover_bridge.command.fences import ALONG_COS, Fences, fence_clearance
 from rover_bridge.command.obstacles import ObstacleView
 
-_ALONG_COS = 1e-3  # an obstacle this close to abeam does not limit travel (cap would be huge anyway)
 BACKUP_ACCEL_FRACTION = 0.4  # AC_Avoid::calc_backup_velocity_2D backs away at 0.4 x the accel
 
 
@@ -101,7 +100,7 @@ def obstacle_cap_m_s(direction: float, view: ObstacleView, settings: AvoidSettin
     for sector in view.obstacles:
         assert sector.distance_m is not None
         cos_theta = direction * math.cos(sector.bearing_ccw_rad)
-        if cos_theta <= _ALONG_COS:
+        if cos_theta <= ALONG_COS:
             continue  # beside or behind the direction of travel
         limit = cap_speed_m_s(sector.distance_m - settings.margin_m, settings.decel_m_s2,
                               settings.delay_s) / cos_theta

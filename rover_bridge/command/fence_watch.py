@@ -23,8 +23,9 @@ from dataclasses import dataclass
 
 from rover_bridge.command.avoidance import FenceQuery
 from rover_bridge.command.fence_download import TYPE_FENCE, FenceDownload
-from rover_bridge.command.fences import CircleFence, Fences, PolygonFence, ne_from_lat_lon, stored_fences
+from rover_bridge.command.fences import CircleFence, Fences, PolygonFence, stored_fences
 from rover_bridge.command.navigation import PoseSource, heading_anchor
+from rover_bridge.frames import ne_from_lat_lon
 from rover_bridge.mavlink.dialect import MAVLinkMessage, mavlink
 from rover_bridge.mavlink.identity import Identity
 

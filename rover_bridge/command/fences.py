@@ -23,18 +23,12 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-EARTH_RADIUS_M = 6378137.0
+from rover_bridge.frames import ne_from_lat_lon
+
 _EPS = 1e-9
-_ALONG_COS = 1e-3  # an edge this close to abeam of the travel does not limit it (as obstacles)
+ALONG_COS = 1e-3  # an edge or obstacle this close to abeam of the travel does not limit it (the cap would be huge)
 
 Point = tuple[float, float]  # (north m, east m)
-
-
-def ne_from_lat_lon(origin_lat_deg: float, origin_lon_deg: float, lat_deg: float, lon_deg: float) -> Point:
-    """(north m, east m) of a lat/lon from the origin, flat earth about the origin."""
-    north = math.radians(lat_deg - origin_lat_deg) * EARTH_RADIUS_M
-    east = math.radians(lon_deg - origin_lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(origin_lat_deg))
-    return north, east
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,7 +117,7 @@ def edge_travel_m(north_m: float, east_m: float, dn: float, de: float, points: S
         if p < _EPS:
             return 0.0  # on the edge
         cos_theta = (vn * dn + ve * de) / p
-        if cos_theta <= _ALONG_COS:
+        if cos_theta <= ALONG_COS:
             continue
         travel = max(p - margin_m, 0.0) / cos_theta
         best = travel if best is None else min(best, travel)

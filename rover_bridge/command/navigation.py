@@ -38,12 +38,11 @@ from typing import Protocol
 
 from rover_bridge.command.approach import StopProfile
 from rover_bridge.command.targets import GlobalTarget, LocalTarget, Target
-from rover_bridge.frames import LocalAnchor, NedPose, yaw_frd_from_yaw_flu
+from rover_bridge.frames import LocalAnchor, NedPose, ne_from_lat_lon, yaw_frd_from_yaw_flu
 from rover_bridge.kinematics import Twist2D
 from rover_bridge.odometry import Pose2D, wrap_angle
 from rover_bridge.params import LimitsParams, NavigationParams
 
-EARTH_RADIUS_M = 6378137.0
 LOCAL_POSITION_MAX_AGE_S = 2.0  # a LOCAL_POSITION_NED older than this (autopilot time) does not anchor
 LOOKAHEAD_S = 1.0  # the look-ahead grows by this many seconds of the speed
 # The frame's rotation from the track (fit_track): over the last minute of LOCAL_POSITION_NED fixes, used
@@ -203,8 +202,7 @@ def resolve(target: Target, source: PoseSource, now_s: float, params: Navigation
             if gps is None or now_s - gps[0] > params.gps_timeout_s:
                 return Unresolved("no GPS (GLOBAL_POSITION_INT)")
             _, stamp, lat0, lon0 = gps
-            dn = math.radians(target.lat_deg - lat0) * EARTH_RADIUS_M
-            de = math.radians(target.lon_deg - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+            dn, de = ne_from_lat_lon(lat0, lon0, target.lat_deg, target.lon_deg)
             at = source.nav_pose_at(stamp)
             here = north.to_ned(at.x_m, at.y_m, at.yaw_rad)
             x, y, _ = north.from_ned(NedPose(here.north_m + dn, here.east_m + de, 0.0))
