@@ -60,8 +60,6 @@ class FenceDownload:
 
     def requests(self, now_s: float, target: tuple[int, int]) -> list[MAVLinkMessage]:
         """The step to ask for now (first time or again), or nothing when given up (begun again RETRY_S later)."""
-        if not self._running:
-            self.start(now_s)
         if self._asks >= ATTEMPTS:
             self._give_up(now_s)
             return []

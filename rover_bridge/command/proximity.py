@@ -99,8 +99,8 @@ class ProximityAvoidance:
             self.reader.refresh(now_s)
 
     def on_param_value(self, msg: MAVLinkMessage, now_s: float) -> None:
-        if self.params.enabled and self.identity.from_autopilot(msg):
-            self.reader.on_param_value(msg, now_s)
+        # Every PARAM_VALUE passes here (a GCS's full download: hundreds): only ours change anything.
+        if self.params.enabled and self.identity.from_autopilot(msg) and self.reader.on_param_value(msg, now_s):
             self._settings = None
             self.fence.configure(self.fence_config(), now_s)
 
