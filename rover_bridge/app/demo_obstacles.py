@@ -20,6 +20,7 @@ import numpy.typing as npt
 
 from rover_bridge.app.demo_route import Phase, body, toward
 from rover_bridge.app.demo_series import Series
+from rover_bridge.command.fences import nearest_boundary_vector
 
 Point = tuple[float, float]  # north, east (m) in the autopilot's local frame: the start is 0, 0, facing north
 FloatArray = npt.NDArray[np.float64]
@@ -74,7 +75,8 @@ LEGS = {"to the wall": WALL, "to the post": POST}  # the phases that drive at an
 
 
 def clearance_m(north: FloatArray, east: FloatArray, polygon: Sequence[Point]) -> FloatArray:
-    """Distance from each point to the polygon's boundary, 0 inside it (even-odd rule)."""
+    """Distance from each point to the polygon's boundary, 0 inside it (even-odd rule): the arithmetic of
+    rover_bridge.command.fences on numpy arrays, for a whole path or the picture's grid at once."""
     best = np.full(np.shape(north), np.inf)
     inside = np.zeros(np.shape(north), dtype=bool)
     for (n1, e1), (n2, e2) in zip(polygon, [*polygon[1:], polygon[0]], strict=True):
@@ -90,14 +92,8 @@ def clearance_m(north: FloatArray, east: FloatArray, polygon: Sequence[Point]) -
 
 def nearest_point(north: float, east: float, polygon: Sequence[Point]) -> Point:
     """The polygon boundary's point nearest (north, east): where the picture draws the distance to."""
-    best, out = math.inf, polygon[0]
-    for (n1, e1), (n2, e2) in zip(polygon, [*polygon[1:], polygon[0]], strict=True):
-        dn, de = n2 - n1, e2 - e1
-        u = min(1.0, max(0.0, ((north - n1) * dn + (east - e1) * de) / (dn * dn + de * de)))
-        p = (n1 + u * dn, e1 + u * de)
-        if (d := math.hypot(north - p[0], east - p[1])) < best:
-            best, out = d, p
-    return out
+    dn, de = nearest_boundary_vector(north, east, polygon)
+    return north + dn, east + de
 
 
 @dataclass(frozen=True)
