@@ -73,6 +73,13 @@ def stop_process(proc: subprocess.Popen[bytes]) -> None:
         proc.wait()
 
 
+def north_east_m(origin_deg: tuple[float, float], lat_deg: float, lon_deg: float) -> Point:
+    """A lat/lon's north/east of the origin (the test's own flat earth: not the bridge's code under test)."""
+    lat0, lon0 = origin_deg
+    return (math.radians(lat_deg - lat0) * EARTH_RADIUS_M,
+            math.radians(lon_deg - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
+
+
 def default_params(binary: str) -> Path:
     given = os.environ.get("ROVER_BRIDGE_ARDUPILOT_PARAMS")
     return Path(given) if given else Path(binary).resolve().parents[3] / "Tools" / "autotest" / "default_params"
@@ -201,15 +208,11 @@ class Sitl:
     def truth(self) -> Point:
         m = self.monitor.of("SIMSTATE", time.monotonic() - 1.0)[-1]
         assert self.origin_deg is not None
-        lat0, lon0 = self.origin_deg
-        return (math.radians(m.lat * 1e-7 - lat0) * EARTH_RADIUS_M,
-                math.radians(m.lng * 1e-7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
+        return north_east_m(self.origin_deg, m.lat * 1e-7, m.lng * 1e-7)
 
     def track(self, since: float, until: float = math.inf) -> list[Point]:
         assert self.origin_deg is not None
-        lat0, lon0 = self.origin_deg
-        return [(math.radians(m.lat * 1e-7 - lat0) * EARTH_RADIUS_M,
-                 math.radians(m.lng * 1e-7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
+        return [north_east_m(self.origin_deg, m.lat * 1e-7, m.lng * 1e-7)
                 for t, m in list(self.monitor.messages) if since <= t <= until and m.get_type() == "SIMSTATE"]
 
     def mode(self) -> int | None:

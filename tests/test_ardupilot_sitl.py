@@ -16,7 +16,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import math
-import os
 import signal
 import socket
 import subprocess
@@ -28,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from ardupilot_rig import BINARY, EXTRA_PARAMS, REAL_SITL, stop_process
+from ardupilot_rig import BINARY, EARTH_RADIUS_M, EXTRA_PARAMS, REAL_SITL, default_params, north_east_m, stop_process
 from lockstep import free_udp_port
 
 from rover_bridge.mavlink.dialect import mavlink, mavutil
@@ -42,16 +41,7 @@ SERIAL0, SERIAL1 = 5760 + 10 * INSTANCE, 5762 + 10 * INSTANCE
 TRIM = 1500
 HOLD, MANUAL = 4, 0  # Rover custom modes
 GUIDED = 15
-EARTH_RADIUS_M = 6378137.0
 BODY_VELOCITY_MASK = 0b0000_0101_1100_0111
-
-
-def _default_params() -> Path:
-    given = os.environ.get("ROVER_BRIDGE_ARDUPILOT_PARAMS")
-    if given:
-        return Path(given)
-    # <tree>/build/sitl/bin/ardurover -> <tree>/Tools/autotest/default_params
-    return Path(BINARY).resolve().parents[3] / "Tools" / "autotest" / "default_params"
 
 
 def _wait_port(port: int, timeout_s: float) -> None:
@@ -128,7 +118,7 @@ class Monitor:
 
 @pytest.fixture(scope="module")
 def ardupilot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Monitor]:
-    params = _default_params()
+    params = default_params(BINARY)
     for name in ("rover.parm", "rover-skid.parm"):
         assert (params / name).is_file(), f"{params / name} not found: set ROVER_BRIDGE_ARDUPILOT_PARAMS"
     work = tmp_path_factory.mktemp("ardurover")
@@ -296,12 +286,6 @@ def test_hold_on_the_autopilot_stops_the_rover(ardupilot: Monitor, tmp_path: Pat
     assert ardupilot.first(_at_trim, time.monotonic() - 0.5, 3.0) is not None
 
 
-def _north_east_m(origin_deg: tuple[float, float], point_deg: tuple[float, float]) -> tuple[float, float]:
-    lat0, lon0 = origin_deg
-    return (math.radians(point_deg[0] - lat0) * EARTH_RADIUS_M,
-            math.radians(point_deg[1] - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)))
-
-
 def test_go_to_a_point_on_the_real_autopilot(ardupilot: Monitor, tmp_path: Path) -> None:
     """GUIDED through the bridge, then a MISSION_ITEM_INT (current = 2) 4 m north of the autopilot's
     position: the bridge drives there on its own estimate and says MISSION_ITEM_REACHED; judged by the
@@ -332,7 +316,7 @@ def test_go_to_a_point_on_the_real_autopilot(ardupilot: Monitor, tmp_path: Path)
             time.sleep(0.05)
         assert gcs.reached >= 1, f"no MISSION_ITEM_REACHED in 40 s\n{log_path.read_text()[-2000:]}"
         time.sleep(2.0)  # stopped, and staying
-        n, e = _north_east_m(start_truth, ardupilot.truth_deg)
+        n, e = north_east_m(start_truth, *ardupilot.truth_deg)
         gcs.set_mode(MANUAL)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(5.0) == 0
