@@ -203,3 +203,11 @@ def test_a_simulated_approach_stops_at_the_margin(extra_m: float, v_req: float, 
     closest, final = approach(margin_m + extra_m, v_req, s, lag_steps, circle_fence(v_req, s, margin_m + extra_m))
     assert closest >= margin_m - 1e-3  # exact position: only the integration's rounding
     assert final <= rest_m
+
+
+def test_a_fence_the_rover_cannot_be_placed_on_caps_at_the_crawl_and_a_nearer_obstacle_still_wins() -> None:
+    out = limit_velocity(1.0, 0.3, S, fence_unplaced=True)
+    assert (out.v_m_s, out.omega_rad_s, out.reason) == (S.crawl_speed_m_s, 0.3, AvoidReason.FENCE_UNKNOWN)
+    assert limit_velocity(-0.1, 0.0, S, fence_unplaced=True).v_m_s == -0.1  # under the crawl: as asked
+    near = limit_velocity(1.0, 0.0, S, one(0.0, S.margin_m + 0.01), fence_unplaced=True)
+    assert near.reason is AvoidReason.OBSTACLE_SLOW and near.v_m_s < S.crawl_speed_m_s

@@ -124,9 +124,10 @@ def backup_speed_m_s(view: ObstacleView, settings: AvoidSettings) -> float:
 
 
 def limit_velocity(v_m_s: float, omega_rad_s: float, settings: AvoidSettings, obstacles: ObstacleView | None = None,
-                   fence: FenceQuery | None = None, with_backup: bool = True) -> Limited:
+                   fence: FenceQuery | None = None, with_backup: bool = True, fence_unplaced: bool = False) -> Limited:
     """The requested body velocity with its speed toward obstacles and fence edges capped. omega passes as is.
-    `with_backup`: work out ArduPilot's back-away speed too (reported only; the command flow skips it)."""
+    `with_backup`: work out ArduPilot's back-away speed too (reported only; the command flow skips it).
+    `fence_unplaced`: a fence is on but the rover cannot be placed on it: the crawl speed, as for a silent sensor."""
     backup = backup_speed_m_s(obstacles, settings) if obstacles is not None and with_backup else 0.0
     if v_m_s == 0.0 or not math.isfinite(v_m_s):
         return Limited(v_m_s, omega_rad_s, backup_m_s=backup)
@@ -138,6 +139,8 @@ def limit_velocity(v_m_s: float, omega_rad_s: float, settings: AvoidSettings, ob
             caps.append((cap, AvoidReason.OBSTACLE_STOP if cap <= 0.0 else AvoidReason.OBSTACLE_SLOW))
         if obstacles.blind:
             caps.append((settings.crawl_speed_m_s, AvoidReason.BLIND_CRAWL))
+    if fence_unplaced:
+        caps.append((settings.crawl_speed_m_s, AvoidReason.FENCE_UNKNOWN))
     if fence is not None:
         travel = fence.heading_cw_rad if direction > 0.0 else fence.heading_cw_rad + math.pi
         clearance = fence_clearance(fence.fences, fence.north_m, fence.east_m, travel)

@@ -27,7 +27,6 @@ in it itself), nor is MANUAL unless [avoidance] in_manual (ArduPilot does not av
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 from rover_bridge.command.avoidance import AvoidReason, AvoidSettings, FenceQuery, Limited, limit_velocity
@@ -174,10 +173,8 @@ class ProximityAvoidance:
         fence: FenceQuery | None = None
         if fences is not None:
             fence = self.fence.query(now_s)
-        limited = limit_velocity(target.v_m_s, target.omega_rad_s, settings, view, fence, with_backup=False)
-        if fences is not None and fence is None and abs(limited.v_m_s) > settings.crawl_speed_m_s:
-            crawl = math.copysign(settings.crawl_speed_m_s, limited.v_m_s)  # a fence on, the rover not placed
-            limited = Limited(crawl, target.omega_rad_s, AvoidReason.FENCE_UNKNOWN, settings.crawl_speed_m_s)
+        limited = limit_velocity(target.v_m_s, target.omega_rad_s, settings, view, fence, with_backup=False,
+                                 fence_unplaced=fences is not None and fence is None)
         out += self._said(limited, now_s)
         if limited.v_m_s == target.v_m_s:
             return target, out
