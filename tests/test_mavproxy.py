@@ -139,3 +139,42 @@ def test_mavproxy_guided_drives_the_rover_to_the_point(mavproxy_env: dict[str, s
             time.sleep(0.005)
         truth = emu.truth
         assert math.hypot(truth.x_m - north, truth.y_m - east) <= 0.15
+
+
+def test_mavproxy_velocity_in_guided_stops_inside_the_circle_fence(mavproxy_env: dict[str, str],
+                                                                    tmp_path: Path) -> None:
+    # Issue 43: the autopilot's circle fence (FENCE_RADIUS 6, FENCE_MARGIN 2, AVOID_ENABLE 1; FENCE_ACTION 0 so a
+    # crossing would show) kept by the bridge while MAVProxy drives with `velocity`; MAVProxy's fence module
+    # downloads the same fence through the bridge meanwhile, beside the bridge's own download.
+    params = (("FENCE_ENABLE", 1.0), ("FENCE_TYPE", 6.0), ("FENCE_RADIUS", 6.0), ("FENCE_MARGIN", 2.0),
+              ("FENCE_ACTION", 0.0), ("AVOID_ENABLE", 1.0))
+    vehicle = VehicleConfig(start_armed=True, params=params)
+    with rover_with_mavproxy(mavproxy_env, tmp_path, vehicle, modules="cmdlong,mode,fence") as (emu, stdin):
+        last = time.monotonic()
+        deadline = last + 60.0
+        online_since: float | None = None
+        driving_since: float | None = None
+        next_cmd = 0.0
+        farthest = 0.0
+        while True:
+            now = time.monotonic()
+            assert now < deadline, f"MAVProxy never drove the rover to the fence (truth {emu.truth})"
+            step_wall(emu, now - last)
+            last = now
+            farthest = max(farthest, math.hypot(emu.truth.x_m, emu.truth.y_m))
+            if online_since is None and emu.counters.get("override_accepted", 0) > 0:
+                online_since = now
+                stdin.write("mode guided\n")
+                stdin.flush()
+            if online_since is not None and driving_since is None and emu.mode == 15 and now - online_since > 3.0:
+                driving_since = now
+            if driving_since is not None and now >= next_cmd:
+                stdin.write("velocity 1.0 0 0\n")
+                stdin.flush()
+                next_cmd = now + 0.2
+            if driving_since is not None and now - driving_since > 12.0:
+                break
+            time.sleep(0.005)
+        assert farthest < 6.0 - 2.0 + 0.3, farthest  # stopped FENCE_MARGIN inside, never near the fence
+        assert farthest > 6.0 - 2.0 - 0.5, farthest  # and drove up to it
+        assert abs(emu.truth.v_m_s) < 0.05
