@@ -7,7 +7,7 @@ shows) and does no avoidance itself: what stops the rover short of the fence is 
   for 15 s (the issue's real-SITL run: ArduPilot alone went 10.05 m from home; the bridge before this 18.1 m).
 - A polygon a ground station uploads through the bridge while it runs (FENCE_TYPE 4): the bridge sees the
   autopilot accept the upload, downloads the new fence, and stops FENCE_MARGIN inside its edge; the ground station
-  never sees the bridge's own transfer.
+  never sees the bridge's own transfer; one stored over another link is downloaded within the refresh.
 """
 
 from __future__ import annotations
@@ -19,9 +19,11 @@ from typing import Any
 import pytest
 from lockstep import Lockstep
 
+from rover_bridge.command.fence_watch import STORED_REFRESH_S
 from rover_bridge.mavlink.dialect import mavlink
 from rover_bridge.params import Profile
 from sitl import VehicleConfig
+from sitl.fence_store import FenceItem
 from sitl.geo import lat_lon_of
 
 pytestmark = pytest.mark.e2e
@@ -100,17 +102,40 @@ def upload_through_the_bridge(rig: Lockstep, items: list[Any]) -> int | None:
     return None
 
 
+def polygon_items(rig: Lockstep, corners: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    v = rig.emu.vehicle
+    return [lat_lon_of(n, e, v.origin_lat_deg, v.origin_lon_deg) for n, e in corners]
+
+
+def test_a_polygon_stored_over_another_link_is_downloaded_within_the_refresh() -> None:
+    # A ground station on a radio straight to the autopilot: its upload passes no MISSION_ACK through the bridge.
+    rig = rig_with((*FENCE_OFF_ACTION, ("FENCE_TYPE", 4.0), ("AVOID_ENABLE", 1.0)))
+    try:
+        rig.run_for(2.0)
+        corners = [(8.0, -5.0), (8.0, 5.0), (-5.0, 5.0), (-5.0, -5.0)]
+        vertices = polygon_items(rig, corners)
+        assert rig.emu.autopilot.fence.write(tuple(
+            FenceItem(mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 4.0, round(lat * 1e7), round(lon * 1e7))
+            for lat, lon in vertices))
+        rig.run_for(STORED_REFRESH_S + 1.0)
+        fences = rig.core.command.avoid.fence.fences
+        assert fences is not None and len(fences.polygons) == 1
+        guided(rig)
+        run = drive_north(rig, 1.5, 12.0)
+        assert 8.0 - MARGIN_M - 0.7 < run["north_max"] < 8.0 - MARGIN_M + 0.3, run
+    finally:
+        rig.close()
+
+
 def test_a_polygon_uploaded_while_the_bridge_runs_is_downloaded_and_kept() -> None:
     rig = rig_with((*FENCE_OFF_ACTION, ("FENCE_TYPE", 4.0), ("AVOID_ENABLE", 1.0)))
     try:
         rig.run_for(2.0)
         avoid = rig.core.command.avoid
         assert avoid.fence.download.items == ()  # nothing stored yet: downloaded, empty
-        v = rig.emu.vehicle
         corners = [(8.0, -5.0), (8.0, 5.0), (-5.0, 5.0), (-5.0, -5.0)]  # its north edge 8 m ahead
         items = []
-        for seq, (n, e) in enumerate(corners):
-            lat, lon = lat_lon_of(n, e, v.origin_lat_deg, v.origin_lon_deg)
+        for seq, (lat, lon) in enumerate(polygon_items(rig, corners)):
             items.append(rig.gcs.mav.mission_item_int_encode(
                 1, 1, seq, mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 0, 1,
                 float(len(corners)), 0.0, 0.0, 0.0, round(lat * 1e7), round(lon * 1e7), 0.0,

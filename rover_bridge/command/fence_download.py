@@ -41,6 +41,7 @@ class FenceDownload:
     def __init__(self) -> None:
         self.items: tuple[FenceItem, ...] | None = None  # the last complete download
         self.version = 0  # counts complete downloads
+        self.done_s: float | None = None  # when the last one completed
         self._count: int | None = None  # items announced by MISSION_COUNT (None: asking for the list)
         self._got: list[FenceItem] = []
         self._running = False
@@ -86,7 +87,7 @@ class FenceDownload:
         else:
             return []  # a repeat or out of turn: the resend asks again
         if self._count is not None and len(self._got) >= self._count:
-            self.items, self.version = tuple(self._got), self.version + 1
+            self.items, self.version, self.done_s = tuple(self._got), self.version + 1, now_s
             self._running, self._next_s = False, None
             return [mavlink.MAVLink_mission_ack_message(target[0], target[1], ACCEPTED, TYPE_FENCE)]
         self._asks, self._next_s = 1, now_s + RESEND_S

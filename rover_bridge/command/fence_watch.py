@@ -10,7 +10,8 @@ AVOID_ENABLE has bit 0 (AC_Avoid::adjust_velocity_fence). What the bridge needs 
   HOME_RETRY_S while it is unknown and a fence is on, and taken whenever the autopilot sends it (a new home).
 - The stored fence (FENCE_TYPE bit 2): downloaded with the mission protocol (rover_bridge.command.fence_download)
   when the fence goes on, when the autopilot comes back, and when the autopilot accepts a ground station's fence
-  upload or clear (its MISSION_ACK of type FENCE passes through the bridge).
+  upload or clear (its MISSION_ACK of type FENCE passes through the bridge), and every STORED_REFRESH_S while it is
+  used (an upload on another link passes no MISSION_ACK through the bridge).
 - Where the rover is: the bridge's own estimate, anchored to the autopilot's GLOBAL_POSITION_INT: the fix's
   north/east from home, plus how far the estimate has moved since the fix's stamp (rotated to north by ATTITUDE's
   heading, as the go-to does). With no fresh fix (navigation.gps_timeout_s), no estimate, no heading or no home,
@@ -34,6 +35,9 @@ FENCE_TYPE_CIRCLE = 2
 FENCE_TYPE_POLYGON = 4
 AVOID_FENCE = 1  # AVOID_ENABLE bit 0
 HOME_RETRY_S = 2.0
+# The stored fence is downloaded again this often while it is used: a ground station on another link (a radio
+# straight to the autopilot) or the old FENCE_POINT protocol changes it without a MISSION_ACK passing the bridge.
+STORED_REFRESH_S = 10.0
 MISSION_MESSAGES = frozenset({"MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK"})
 
 
@@ -126,6 +130,10 @@ class FenceWatch:
         if self.identity.vehicle_system_id is None:
             return []
         out: list[MAVLinkMessage] = []
+        done_s = self.download.done_s
+        if (self.config is not None and self.config.stored and not self.download.running and done_s is not None
+                and now_s - done_s >= STORED_REFRESH_S):
+            self.download.start(now_s)
         if self.download.due(now_s):
             out += self.download.requests(now_s, self._autopilot())
         if self._home_next_s is not None and now_s >= self._home_next_s and self.wanted and self.home is None:
