@@ -337,3 +337,48 @@ def through_bridge(binary: str, instance: int, extra: str, workdir: Path, stream
         result = drive(sitl, bridge)
         bridge.stop()
         return result, json.loads(stats.read_text())["command"]
+
+
+WALL_AHEAD_M, BEHIND_M, HALF_WIDTH_M = 10.0, 30.0, 10.0  # wall_ahead's rectangle: 40 m along the heading, 20 m across
+
+
+def upload_fence(link: Link, vertices_e7: list[tuple[int, int]]) -> None:
+    """An inclusion polygon by the mission protocol (mission type FENCE): MISSION_COUNT, each MISSION_REQUEST(_INT)
+    answered with a MISSION_ITEM_INT (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, param1 = vertex count), then
+    ArduPilot's MISSION_ACK."""
+    fence = mavlink.MAV_MISSION_TYPE_FENCE
+    since = time.monotonic()
+    with link.lock:
+        link.conn.mav.mission_count_send(1, 1, len(vertices_e7), fence)
+    sent: set[int] = set()
+    end = time.monotonic() + 15.0
+    while time.monotonic() < end:
+        acks = [m for m in link.of("MISSION_ACK", since) if m.mission_type == fence]
+        if acks:
+            assert acks[-1].type == mavlink.MAV_MISSION_ACCEPTED, acks[-1]
+            assert sent == set(range(len(vertices_e7))), sent
+            return
+        asked = [m for kind in ("MISSION_REQUEST_INT", "MISSION_REQUEST") for m in link.of(kind, since)
+                 if m.mission_type == fence]
+        for seq in sorted({int(m.seq) for m in asked} - sent):
+            lat, lon = vertices_e7[seq]
+            with link.lock:
+                link.conn.mav.mission_item_int_send(
+                    1, 1, seq, mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 0, 1,
+                    len(vertices_e7), 0, 0, 0, lat, lon, 0, fence)
+            sent.add(seq)
+        time.sleep(0.02)
+    raise AssertionError(f"fence upload: no MISSION_ACK (sent {sorted(sent)}; {link.texts()[-5:]})")
+
+
+def wall_ahead(sitl: Sitl) -> tuple[float, float, float]:
+    """Upload the rectangle around the rover, its near wall WALL_AHEAD_M ahead; (north, east, yaw) of the start."""
+    sitl.home_here()
+    yaw = float(sitl.monitor.of("SIM_STATE", time.monotonic() - 1.0)[-1].yaw)
+    fwd, right = (math.cos(yaw), math.sin(yaw)), (-math.sin(yaw), math.cos(yaw))
+    corners = [(WALL_AHEAD_M, -HALF_WIDTH_M), (WALL_AHEAD_M, HALF_WIDTH_M), (-BEHIND_M, HALF_WIDTH_M),
+               (-BEHIND_M, -HALF_WIDTH_M)]
+    upload_fence(sitl.monitor, [sitl.lat_lon_e7(a * fwd[0] + r * right[0], a * fwd[1] + r * right[1])
+                                for a, r in corners])
+    n0, e0 = sitl.truth()
+    return n0, e0, yaw

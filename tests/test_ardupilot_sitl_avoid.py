@@ -26,14 +26,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_sitl_control as bench
-from ardupilot_rig import BINARY, REAL_SITL, Bridge, Link, Sitl, alone, through_bridge
-
-from rover_bridge.mavlink.dialect import mavlink
+from ardupilot_rig import BINARY, REAL_SITL, WALL_AHEAD_M, Bridge, Sitl, alone, through_bridge, wall_ahead
 
 pytestmark = REAL_SITL
 INSTANCE_BRIDGE, INSTANCE_ALONE = 11, 12
 AVOID_PARAMS = "PRX1_TYPE 10\nFENCE_ENABLE 0\nAVOID_ENABLE 2\nAVOID_MARGIN 2\n"
-WALL_AHEAD_M, BEHIND_M, HALF_WIDTH_M = 10.0, 30.0, 10.0  # the rectangle: 40 m along the heading, 20 m across
 DRIVE_M_S, DRIVE_S = 1.0, 20.0
 BACK_M_S, BACK_S = -0.5, 3.0
 REST_WINDOW_S = 1.0  # the rest distance: the mean over the drive's last second
@@ -44,48 +41,6 @@ class Approach:
     closest_m: float
     rest_m: float
     backed_m: float  # how much farther from the wall after backing
-
-
-def upload_fence(link: Link, vertices_e7: list[tuple[int, int]]) -> None:
-    """An inclusion polygon by the mission protocol (mission type FENCE): MISSION_COUNT, each MISSION_REQUEST(_INT)
-    answered with a MISSION_ITEM_INT (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, param1 = vertex count), then
-    ArduPilot's MISSION_ACK."""
-    fence = mavlink.MAV_MISSION_TYPE_FENCE
-    since = time.monotonic()
-    with link.lock:
-        link.conn.mav.mission_count_send(1, 1, len(vertices_e7), fence)
-    sent: set[int] = set()
-    end = time.monotonic() + 15.0
-    while time.monotonic() < end:
-        acks = [m for m in link.of("MISSION_ACK", since) if m.mission_type == fence]
-        if acks:
-            assert acks[-1].type == mavlink.MAV_MISSION_ACCEPTED, acks[-1]
-            assert sent == set(range(len(vertices_e7))), sent
-            return
-        asked = [m for kind in ("MISSION_REQUEST_INT", "MISSION_REQUEST") for m in link.of(kind, since)
-                 if m.mission_type == fence]
-        for seq in sorted({int(m.seq) for m in asked} - sent):
-            lat, lon = vertices_e7[seq]
-            with link.lock:
-                link.conn.mav.mission_item_int_send(
-                    1, 1, seq, mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 0, 1,
-                    len(vertices_e7), 0, 0, 0, lat, lon, 0, fence)
-            sent.add(seq)
-        time.sleep(0.02)
-    raise AssertionError(f"fence upload: no MISSION_ACK (sent {sorted(sent)}; {link.texts()[-5:]})")
-
-
-def wall_ahead(sitl: Sitl) -> tuple[float, float, float]:
-    """Upload the rectangle around the rover, its near wall WALL_AHEAD_M ahead; (north, east, yaw) of the start."""
-    sitl.home_here()
-    yaw = float(sitl.monitor.of("SIM_STATE", time.monotonic() - 1.0)[-1].yaw)
-    fwd, right = (math.cos(yaw), math.sin(yaw)), (-math.sin(yaw), math.cos(yaw))
-    corners = [(WALL_AHEAD_M, -HALF_WIDTH_M), (WALL_AHEAD_M, HALF_WIDTH_M), (-BEHIND_M, HALF_WIDTH_M),
-               (-BEHIND_M, -HALF_WIDTH_M)]
-    upload_fence(sitl.monitor, [sitl.lat_lon_e7(a * fwd[0] + r * right[0], a * fwd[1] + r * right[1])
-                                for a, r in corners])
-    n0, e0 = sitl.truth()
-    return n0, e0, yaw
 
 
 def approach(driver: bench.Driver) -> Approach:

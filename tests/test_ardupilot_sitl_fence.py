@@ -12,7 +12,13 @@ Through the bridge the rover must never cross the fence (farthest < FENCE_RADIUS
 bridge must have counted a fence limit (its --stats-json `avoid.fence_*`); what it said (STATUSTEXT "RB: ...")
 is printed. About 2 minutes (the two SITLs one after the other).
 
-Runs only when ROVER_BRIDGE_ARDUROVER names an `ardurover` binary. SITL instances 14 (bridge) and 15 (alone).
+A second test stores an inclusion polygon over another link (the SITL's own monitor link, as a ground station on a
+radio straight to the autopilot would): no MISSION_ACK passes the bridge, so its periodic download must find it
+(rover_bridge.command.fence_watch.STORED_REFRESH_S); GUIDED vx 1.0 m/s at its near edge 10 m ahead, the rover must
+rest FENCE_MARGIN inside it (within 0.3 m). About 1.5 minutes.
+
+Runs only when ROVER_BRIDGE_ARDUROVER names an `ardurover` binary. SITL instances 14 (bridge) and 15 (alone), 16
+(the polygon).
 """
 
 from __future__ import annotations
@@ -25,13 +31,16 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import bench_sitl_control as bench
-from ardupilot_rig import BINARY, REAL_SITL, Bridge, Sitl, alone, through_bridge
+from ardupilot_rig import BINARY, REAL_SITL, WALL_AHEAD_M, Bridge, Sitl, alone, through_bridge, wall_ahead
 
+from rover_bridge.command.fence_watch import STORED_REFRESH_S
 from rover_bridge.mavlink.dialect import mavlink
 
 pytestmark = REAL_SITL
-INSTANCE_BRIDGE, INSTANCE_ALONE = 14, 15
+INSTANCE_BRIDGE, INSTANCE_ALONE, INSTANCE_POLYGON = 14, 15, 16
 FENCE_RADIUS_M, FENCE_MARGIN_M = 12.0, 2.0
+POLYGON_PARAMS = (f"PRX1_TYPE 0\nFENCE_ENABLE 1\nFENCE_TYPE 4\nFENCE_MARGIN {FENCE_MARGIN_M:g}\nFENCE_ACTION 0\n"
+                  "AVOID_ENABLE 1\n")
 FENCE_PARAMS = (f"PRX1_TYPE 0\nFENCE_ENABLE 1\nFENCE_TYPE 2\nFENCE_RADIUS {FENCE_RADIUS_M:g}\n"
                 f"FENCE_MARGIN {FENCE_MARGIN_M:g}\nFENCE_ACTION 0\nAVOID_ENABLE 1\n")
 # The truth and outputs as the other real-SITL checks ask for them, and home at 1 Hz (to see that it stays put).
@@ -101,3 +110,32 @@ def test_the_bridge_stays_inside_the_circle_fence_as_ardupilot_alone_does(tmp_pa
     assert ours.farthest_m <= FENCE_RADIUS_M - FENCE_MARGIN_M + 0.5, table  # stops where ArduPilot would
     assert ours.farthest_m >= anchor.farthest_m - 1.0, table  # not timid
     assert any("fence" in k and v > 0 for k, v in counters.items()), table  # the bridge's fence limit did it
+
+
+def test_a_polygon_stored_over_another_link_is_found_and_kept(tmp_path: Path) -> None:
+    def drive(sitl: Sitl, bridge: Bridge) -> tuple[float, float]:
+        driver = bench.Driver("bridge", sitl, bridge.gcs)
+        bench.wait_ready(sitl)
+        n0, e0, yaw = wall_ahead(sitl)  # on the SITL's monitor link: nothing of it passes the bridge
+        time.sleep(STORED_REFRESH_S + 2.0)
+        driver.set_mode(bench.MANUAL)
+        driver.arm()
+        driver.set_mode(bench.GUIDED)
+        driver.velocity(0.0, 0.0)
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        driver.velocity(1.0, 0.0)
+        time.sleep(15.0)
+        t1 = time.monotonic()
+        driver.velocity(0.0, 0.0)
+        driver.gcs.each = None
+        gaps = [WALL_AHEAD_M - ((n - n0) * math.cos(yaw) + (e - e0) * math.sin(yaw)) for n, e in sitl.track(t0, t1)]
+        assert gaps, "no truth"
+        return min(gaps), gaps[-1]
+
+    (closest_m, rest_m), counters = through_bridge(BINARY, INSTANCE_POLYGON, bench.BRIDGE_PARAMS + POLYGON_PARAMS,
+                                                   tmp_path, bench.STREAMS, drive)
+    table = f"closest {closest_m:.2f} m, at rest {rest_m:.2f} m from the polygon's edge; {counters}"
+    print(table)
+    assert closest_m >= FENCE_MARGIN_M - 0.3 and rest_m <= FENCE_MARGIN_M + 0.3, table
+    assert counters.get("avoid.fence_stop", 0) >= 1, table
